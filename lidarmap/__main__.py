@@ -1,0 +1,3 @@
+from lidarmap.cli.main import main
+
+main()

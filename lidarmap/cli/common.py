@@ -1,0 +1,85 @@
+"""What every command shares: config loading, one-line errors, progress bars, the console."""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from typing import Any, TypeVar
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+from lidarmap.config import load_toml, resolve
+from lidarmap.errors import LidarmapError
+
+console = Console()
+err_console = Console(stderr=True)
+
+T = TypeVar("T")
+P = TypeVar("P")
+
+#: ``--config`` option shared by every command (a TOML file, one table per stage).
+ConfigOption = typer.Option(None, "--config", "-c", help="TOML config file; command-line flags override it.",
+                            exists=False, dir_okay=False)
+#: ``--seed`` option shared by every command that draws random numbers.
+SeedOption = typer.Option(None, "--seed", help="Random seed: the same input and seed give the same output.")
+
+
+def params_from(params_cls: type[P], config_path: Path | None, section: str | None = None, **flags: Any) -> P:
+    """Stage parameters: dataclass defaults < the config file's table < flags given on the command line."""
+    return resolve(params_cls, load_toml(config_path), section, **flags)
+
+
+def fail(message: str, code: int = 2) -> None:
+    """Print a one-line error and exit with ``code``."""
+    err_console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+def handle_errors(func: Callable[..., T]) -> Callable[..., T]:
+    """Turn lidarmap errors (and unexpected ones) into one line on stderr and a non-zero exit.
+
+    Set ``LIDARMAP_DEBUG=1`` to see the full traceback of an unexpected error.
+    """
+
+    @functools.wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> T:
+        try:
+            return func(*args, **kwargs)
+        except (typer.Exit, typer.Abort, KeyboardInterrupt):
+            raise
+        except LidarmapError as exc:
+            fail(str(exc), exc.exit_code)
+        except MemoryError:
+            fail("out of memory (try smaller chunks or --workers)", 4)
+        except Exception as exc:  # noqa: BLE001 - the last line of defence: no tracebacks for users
+            if os.environ.get("LIDARMAP_DEBUG"):
+                raise
+            fail(f"internal error: {type(exc).__name__}: {exc} (set LIDARMAP_DEBUG=1 for a traceback)", 1)
+        raise AssertionError("unreachable")
+
+    return wrapper
+
+
+def progress(transient: bool = False) -> Progress:
+    """A rich progress bar that stays quiet when stderr is not a terminal (CI logs)."""
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=err_console,
+        transient=transient,
+        disable=not sys.stderr.isatty(),
+    )
+
+
+def track(items: Iterable[T], description: str, total: int | None = None) -> Iterator[T]:
+    """Iterate with a progress bar."""
+    with progress() as bar:
+        yield from bar.track(items, description=description, total=total)

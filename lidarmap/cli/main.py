@@ -1,0 +1,63 @@
+"""The ``lidarmap`` command line: one Typer app; each area registers its commands from its own module."""
+
+from __future__ import annotations
+
+import importlib
+
+import typer
+
+from lidarmap import __version__
+
+app = typer.Typer(
+    name="lidarmap",
+    help="LiDAR point clouds of cities to building models that get better with every new scan.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+#: Modules under lidarmap.cli that define ``register(app)``; order is the order in ``--help``.
+COMMAND_MODULES = ["info", "simulate", "prep", "segment", "aerial", "facade_map", "demo"]
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"lidarmap {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                       help="Print the version and exit.")) -> None:
+    """LiDAR point clouds of cities to building models that get better with every new scan."""
+
+
+for _name in COMMAND_MODULES:
+    _module = importlib.import_module(f"lidarmap.cli.{_name}")
+    _module.register(app)
+
+
+def main() -> None:
+    """Console-script entry point: usage errors are one line too (no rich box, no traceback)."""
+    import sys
+
+    from typer._click import exceptions as click_exc  # typer vendors click; its errors live here
+
+    try:
+        code = app(standalone_mode=False)  # returns the exit code of a typer.Exit raised inside a command
+    except click_exc.NoArgsIsHelpError as exc:
+        typer.echo(exc.ctx.get_help() if exc.ctx else "see 'lidarmap --help'")
+        sys.exit(0)
+    except click_exc.UsageError as exc:
+        command = exc.ctx.command_path if exc.ctx else "lidarmap"
+        typer.echo(f"error: {exc.format_message()} (see '{command} --help')", err=True)
+        sys.exit(exc.exit_code)
+    except click_exc.Abort:
+        typer.echo("error: aborted", err=True)
+        sys.exit(130)
+    except click_exc.Exit as exc:
+        sys.exit(exc.exit_code)
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+    sys.exit(code if isinstance(code, int) else 0)

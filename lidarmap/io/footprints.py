@@ -1,0 +1,152 @@
+"""Building footprints: GeoJSON (RFC 7946 WGS84, or a legacy ``crs`` member), reprojected to the points' CRS."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import shapely
+from pyproj import CRS, Transformer
+from shapely.geometry import MultiPolygon, Polygon, mapping, shape
+
+from lidarmap.errors import CRSError, InputError
+from lidarmap.io.atomic import write_text_atomic
+from lidarmap.io.crs import horizontal_crs, same_crs
+
+WGS84 = CRS.from_epsg(4326)
+
+
+@dataclasses.dataclass
+class Footprints:
+    """Footprint polygons (shapely, in ``crs``) with their ids and original properties."""
+
+    ids: list[str]
+    polygons: np.ndarray  # object array of shapely Polygon/MultiPolygon
+    properties: list[dict[str, Any]]
+    crs: CRS
+    source: str | None = None
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        return tuple(shapely.total_bounds(self.polygons))  # type: ignore[return-value]
+
+    def subset(self, index: np.ndarray) -> "Footprints":
+        index = np.asarray(index)
+        if index.dtype == bool:
+            index = np.flatnonzero(index)
+        return Footprints([self.ids[i] for i in index], self.polygons[index],
+                          [self.properties[i] for i in index], self.crs, self.source)
+
+    def to_crs(self, crs: CRS) -> "Footprints":
+        """The same footprints reprojected to ``crs`` (2D, always x=easting/lon, y=northing/lat)."""
+        target = horizontal_crs(crs)
+        if same_crs(self.crs, target):
+            return self
+        transformer = Transformer.from_crs(self.crs, target, always_xy=True)
+
+        def project(coords: np.ndarray) -> np.ndarray:
+            x, y = transformer.transform(coords[:, 0], coords[:, 1])
+            return np.column_stack([x, y])
+
+        polygons = shapely.transform(self.polygons, project)
+        if not np.all(np.isfinite(shapely.total_bounds(polygons))):
+            raise CRSError(f"footprints cannot be reprojected to {target.name!r}", self.source)
+        return Footprints(self.ids, polygons, self.properties, target, self.source)
+
+
+def _legacy_crs(doc: dict[str, Any], path: Path) -> CRS | None:
+    member = doc.get("crs")
+    if not member:
+        return None
+    name = (member.get("properties") or {}).get("name") if isinstance(member, dict) else None
+    if not name:
+        raise CRSError("GeoJSON 'crs' member has no properties.name", path)
+    match = re.search(r"EPSG:+(\d+)", str(name), re.IGNORECASE)
+    try:
+        return CRS.from_epsg(int(match.group(1))) if match else CRS.from_user_input(name)
+    except Exception:  # noqa: BLE001
+        raise CRSError(f"unknown CRS {name!r} in the GeoJSON 'crs' member", path) from None
+
+
+def read_footprints(path: str | Path, id_field: str = "id", crs: CRS | None = None) -> Footprints:
+    """Read a GeoJSON FeatureCollection of (Multi)Polygons.
+
+    The CRS is the legacy ``crs`` member when present, else WGS84 (RFC 7946). The building id comes from
+    property ``id_field`` (or the feature's ``id``), falling back to the feature index. With ``crs`` the footprints
+    are reprojected to it.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError("file not found", path)
+    if path.suffix.lower() in (".gpkg", ".shp"):
+        raise InputError("GeoPackage/Shapefile footprints are not supported yet; convert to GeoJSON "
+                         "(e.g. ogr2ogr -f GeoJSON out.geojson in.gpkg)", path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid JSON ({exc})", path) from None
+    features = doc.get("features") if isinstance(doc, dict) else None
+    if not isinstance(features, list):
+        raise InputError("not a GeoJSON FeatureCollection", path)
+    source_crs = _legacy_crs(doc, path) or WGS84
+    ids, polys, props = [], [], []
+    seen: set[str] = set()
+    for index, feature in enumerate(features):
+        geom_doc = (feature or {}).get("geometry")
+        if not geom_doc or geom_doc.get("type") not in ("Polygon", "MultiPolygon"):
+            continue
+        try:
+            geom = shape(geom_doc)
+        except Exception as exc:  # noqa: BLE001
+            raise InputError(f"feature {index}: invalid geometry ({exc})", path) from None
+        if geom.is_empty:
+            continue
+        if not geom.is_valid:
+            geom = shapely.make_valid(geom)
+            geom = MultiPolygon([g for g in getattr(geom, "geoms", [geom]) if isinstance(g, Polygon)]) \
+                if geom.geom_type not in ("Polygon", "MultiPolygon") else geom
+        properties = dict(feature.get("properties") or {})
+        raw_id = properties.get(id_field, feature.get("id") if id_field == "id" else None)
+        fid = str(raw_id) if raw_id is not None else str(index)
+        if fid in seen:
+            fid = f"{fid}_{index}"
+        seen.add(fid)
+        ids.append(fid)
+        polys.append(geom)
+        props.append(properties)
+    if not ids:
+        raise InputError("no polygon footprints in file", path)
+    coords = shapely.get_coordinates(np.array(polys, dtype=object))
+    if not np.all(np.isfinite(coords)):
+        raise InputError("NaN or infinite footprint coordinates", path)
+    result = Footprints(ids, np.array(polys, dtype=object), props, source_crs, str(path))
+    return result.to_crs(crs) if crs is not None else result
+
+
+def check_overlap(footprints: Footprints, bounds: tuple[float, float, float, float], points_name: str) -> None:
+    """Refuse footprints whose bounding box misses the points' bounding box (wrong CRS, wrong file)."""
+    fx0, fy0, fx1, fy1 = footprints.bounds
+    px0, py0, px1, py1 = bounds
+    if fx1 < px0 or fx0 > px1 or fy1 < py0 or fy0 > py1:
+        raise InputError(
+            f"footprints do not overlap the points of {points_name}: footprints bbox "
+            f"[{fx0:.2f}, {fy0:.2f}, {fx1:.2f}, {fy1:.2f}] vs points bbox [{px0:.2f}, {py0:.2f}, {px1:.2f}, {py1:.2f}]"
+            f" ({footprints.crs.name})", footprints.source)
+
+
+def write_geojson_wgs84(path: str | Path, polygons: list[Polygon], properties: list[dict[str, Any]],
+                        crs: CRS) -> Path:
+    """Write footprints as RFC 7946 GeoJSON (reprojected from ``crs`` to WGS84 lon/lat), atomically."""
+    fp = Footprints([str(i) for i in range(len(polygons))], np.array(polygons, dtype=object), properties, crs)
+    wgs = fp.to_crs(WGS84)
+    features = [{"type": "Feature", "properties": props, "geometry": mapping(geom)}
+                for geom, props in zip(wgs.polygons, properties)]
+    doc = {"type": "FeatureCollection", "features": features}
+    return write_text_atomic(path, json.dumps(doc, indent=None))

@@ -1,0 +1,182 @@
+"""LAS/LAZ reading (whole or in chunks), writing (LAS 1.4, atomic) and ``info`` summaries, with laspy + lazrs.
+
+Every failure to read becomes an :class:`~lidarmap.errors.InputError` naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import laspy
+import numpy as np
+from pyproj import CRS
+
+from lidarmap.errors import CRSError, InputError
+from lidarmap.io.atomic import atomic_path
+from lidarmap.io.crs import describe_crs, parse_crs, same_crs
+from lidarmap.io.pointcloud import STANDARD_ATTRS, PointCloud
+
+#: Default number of points per chunk when streaming.
+CHUNK_POINTS = 2_000_000
+
+
+def _open(path: Path) -> laspy.LasReader:
+    if not path.exists():
+        raise InputError("file not found", path)
+    if path.is_dir():
+        raise InputError("is a folder, not a LAS/LAZ file", path)
+    if path.stat().st_size == 0:
+        raise InputError("empty file", path)
+    try:
+        reader = laspy.open(path)
+    except (laspy.errors.LaspyException, ValueError, OSError, EOFError) as exc:
+        raise InputError(f"not a valid LAS/LAZ file ({_short(exc)})", path) from None
+    header = reader.header
+    if not (np.all(np.isfinite(header.scales)) and np.all(np.isfinite(header.offsets))):
+        reader.close()
+        raise InputError("header has NaN/inf scale or offset", path)
+    if np.any(np.asarray(header.scales) == 0):
+        reader.close()
+        raise InputError("header has a zero scale factor", path)
+    return reader
+
+
+def _short(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text[:160]
+
+
+def _file_crs(header: laspy.LasHeader, path: Path) -> CRS | None:
+    try:
+        return header.parse_crs()
+    except Exception as exc:  # noqa: BLE001 - laspy/pyproj raise many kinds on broken CRS records
+        raise CRSError(f"unreadable CRS record ({_short(exc)})", path) from None
+
+
+def resolve_crs(file_crs: CRS | None, user_crs: str | CRS | None, path: Path) -> CRS | None:
+    """The CRS to use: the file's, or ``--crs`` when the file has none; a conflict is an error."""
+    user = parse_crs(user_crs, str(path))
+    if user is None:
+        return file_crs
+    if file_crs is not None and not same_crs(file_crs, user):
+        raise CRSError(f"file declares CRS {file_crs.name!r} but --crs is {user.name!r}", path)
+    return file_crs or user
+
+
+def _check_bounds(xyz: np.ndarray, header: laspy.LasHeader, path: Path) -> None:
+    """Points far outside the header's bounding box mean corrupt point data (LAZ decodes garbage silently)."""
+    if not len(xyz):
+        return
+    lo, hi = np.asarray(header.mins, dtype=np.float64), np.asarray(header.maxs, dtype=np.float64)
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))) or np.all(lo == hi):
+        return  # writers that leave the bounds unset: nothing to check against
+    slack = (hi - lo) * 0.01 + np.asarray(header.scales) * 2
+    bad = np.any((xyz < lo - slack) | (xyz > hi + slack), axis=1)
+    if bad.any():
+        raise InputError(f"corrupt point data: {int(bad.sum())} point(s) outside the header bounds", path)
+
+
+def _points_to_cloud(points: laspy.ScaleAwarePointRecord, crs: CRS | None, path: Path,
+                     header: laspy.LasHeader | None = None) -> PointCloud:
+    xyz = np.column_stack([np.asarray(points.x), np.asarray(points.y), np.asarray(points.z)]).astype(np.float64)
+    if not np.all(np.isfinite(xyz)):
+        raise InputError("NaN or infinite coordinates", path)
+    if header is not None:
+        _check_bounds(xyz, header, path)
+    names = set(points.point_format.dimension_names)
+    attrs: dict[str, np.ndarray] = {}
+    for name, dtype in STANDARD_ATTRS.items():
+        if name == "scan_angle":
+            continue
+        if name in names:
+            attrs[name] = np.asarray(points[name]).astype(dtype)
+    if "scan_angle" in names:  # formats 6-10 store 0.006 degree units
+        attrs["scan_angle"] = (np.asarray(points["scan_angle"], dtype=np.float32) * np.float32(0.006))
+    elif "scan_angle_rank" in names:
+        attrs["scan_angle"] = np.asarray(points["scan_angle_rank"], dtype=np.float32)
+    extra = list(points.point_format.extra_dimension_names)
+    for name in extra:
+        attrs[name] = np.asarray(points[name])
+    return PointCloud(xyz=xyz, attrs=attrs, crs=crs, extra_dims=extra, source=str(path))
+
+
+def read_header(path: str | Path) -> laspy.LasHeader:
+    """The header of a LAS/LAZ file (validated)."""
+    path = Path(path)
+    with _open(path) as reader:
+        return reader.header
+
+
+def read_las(path: str | Path, crs: str | CRS | None = None) -> PointCloud:
+    """Read a whole LAS/LAZ file. ``crs`` sets the CRS when the file has none (a conflicting one is an error)."""
+    return PointCloud.concatenate(list(iter_las(path, crs=crs))) if _count(path) else _empty(path, crs)
+
+
+def _count(path: str | Path) -> int:
+    return read_header(path).point_count
+
+
+def _empty(path: str | Path, crs: str | CRS | None) -> PointCloud:
+    path = Path(path)
+    with _open(path) as reader:
+        file_crs = resolve_crs(_file_crs(reader.header, path), crs, path)
+        points = laspy.ScaleAwarePointRecord.zeros(0, header=reader.header)
+        return _points_to_cloud(points, file_crs, path)
+
+
+def iter_las(path: str | Path, chunk_size: int = CHUNK_POINTS, crs: str | CRS | None = None) -> Iterator[PointCloud]:
+    """Stream a LAS/LAZ file in chunks of at most ``chunk_size`` points (bounded memory for any file size)."""
+    path = Path(path)
+    with _open(path) as reader:
+        file_crs = resolve_crs(_file_crs(reader.header, path), crs, path)
+        expected = reader.header.point_count
+        seen = 0
+        try:
+            for points in reader.chunk_iterator(chunk_size):
+                if len(points) == 0:
+                    break
+                seen += len(points)
+                yield _points_to_cloud(points, file_crs, path, reader.header)
+        except InputError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - lazrs/laspy raise various errors on corrupt data
+            raise InputError(f"corrupt or truncated point data after {seen} points ({_short(exc)})", path) from None
+        if seen < expected:
+            raise InputError(f"truncated: header promises {expected} points, file holds {seen}", path)
+
+
+def _point_format_for(cloud: PointCloud) -> int:
+    if "nir" in cloud.attrs:
+        return 8
+    return 7 if cloud.has_rgb else 6
+
+
+def write_las(path: str | Path, cloud: PointCloud, scale: float = 0.001) -> Path:
+    """Write LAS 1.4 (LAZ when the suffix is .laz) with the CRS record and extra dimensions, atomically.
+
+    Point format 6 (7 with RGB, 8 with NIR). Coordinates are stored at ``scale`` (default 1 mm).
+    """
+    path = Path(path)
+    if not np.all(np.isfinite(cloud.xyz)):
+        raise InputError("refusing to write NaN or infinite coordinates", path)
+    header = laspy.LasHeader(point_format=_point_format_for(cloud), version="1.4")
+    for name in cloud.extra_dims:
+        header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=cloud.attrs[name].dtype))
+    lo = cloud.xyz.min(axis=0) if len(cloud) else np.zeros(3)
+    header.offsets = np.floor(lo)
+    header.scales = np.array([scale, scale, scale])
+    if cloud.crs is not None:
+        header.add_crs(cloud.crs)
+    record = laspy.ScaleAwarePointRecord.zeros(len(cloud), header=header)
+    record.x, record.y, record.z = cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]
+    for name, values in cloud.attrs.items():
+        if name == "scan_angle":
+            record["scan_angle"] = np.round(np.asarray(values, dtype=np.float64) / 0.006).astype(np.int16)
+        elif name in record.point_format.dimension_names:
+            record[name] = values
+    with atomic_path(path) as tmp:
+        with laspy.open(tmp, mode="w", header=header,
+                        do_compress=path.suffix.lower() == ".laz") as writer:
+            writer.write_points(record)
+    return path

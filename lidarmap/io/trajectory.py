@@ -1,0 +1,88 @@
+"""Vehicle trajectories: CSV ``time,x,y,z[,roll,pitch,yaw]`` and sensor positions at any GPS time."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+from pathlib import Path
+
+import numpy as np
+
+from lidarmap.errors import InputError
+from lidarmap.io.atomic import write_text_atomic
+
+REQUIRED = ("time", "x", "y", "z")
+ANGLES = ("roll", "pitch", "yaw")
+
+
+@dataclasses.dataclass
+class Trajectory:
+    """Sensor positions (CRS) over GPS time; ``rpy`` are roll, pitch, yaw in radians when known."""
+
+    time: np.ndarray
+    xyz: np.ndarray
+    rpy: np.ndarray | None = None
+    source: str | None = None
+
+    def __post_init__(self) -> None:
+        self.time = np.asarray(self.time, dtype=np.float64)
+        self.xyz = np.asarray(self.xyz, dtype=np.float64).reshape(-1, 3)
+        if self.rpy is not None:
+            self.rpy = np.asarray(self.rpy, dtype=np.float64).reshape(-1, 3)
+
+    def __len__(self) -> int:
+        return len(self.time)
+
+    def position_at(self, t: np.ndarray, tolerance: float = 0.05) -> np.ndarray:
+        """Sensor positions (M, 3) at GPS times ``t`` by linear interpolation.
+
+        Times more than ``tolerance`` seconds outside the trajectory are an error: extrapolating a vehicle's path
+        would silently put the sensor in the wrong place.
+        """
+        t = np.asarray(t, dtype=np.float64)
+        if t.size and (t.min() < self.time[0] - tolerance or t.max() > self.time[-1] + tolerance):
+            outside = int(np.count_nonzero((t < self.time[0] - tolerance) | (t > self.time[-1] + tolerance)))
+            raise InputError(
+                f"{outside} point time(s) in [{t.min():.3f}, {t.max():.3f}] lie outside the trajectory's "
+                f"[{self.time[0]:.3f}, {self.time[-1]:.3f}]", self.source)
+        return np.column_stack([np.interp(t, self.time, self.xyz[:, k]) for k in range(3)])
+
+
+def read_trajectory(path: str | Path) -> Trajectory:
+    """Read a trajectory CSV (header row required; extra columns are ignored); validated."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError("file not found", path)
+    text = path.read_text(encoding="utf-8", errors="replace")
+    if not text.strip():
+        raise InputError("empty trajectory file", path)
+    rows = list(csv.reader(io.StringIO(text)))
+    header = [h.strip().lower() for h in rows[0]]
+    missing = [c for c in REQUIRED if c not in header]
+    if missing:
+        raise InputError(f"trajectory CSV lacks column(s) {', '.join(missing)} (header: {','.join(header)})", path)
+    body = [r for r in rows[1:] if r and any(cell.strip() for cell in r)]
+    if len(body) < 2:
+        raise InputError("trajectory needs at least two rows", path)
+    try:
+        data = np.array([[float(r[header.index(c)]) for c in header if c in REQUIRED + ANGLES] for r in body])
+    except (ValueError, IndexError) as exc:
+        raise InputError(f"unreadable trajectory row ({exc})", path) from None
+    cols = [c for c in header if c in REQUIRED + ANGLES]
+    if not np.all(np.isfinite(data)):
+        raise InputError("NaN or infinite values in trajectory", path)
+    time = data[:, cols.index("time")]
+    if np.any(np.diff(time) <= 0):
+        raise InputError("trajectory times are not strictly increasing", path)
+    xyz = data[:, [cols.index(c) for c in ("x", "y", "z")]]
+    rpy = data[:, [cols.index(c) for c in ANGLES]] if all(c in cols for c in ANGLES) else None
+    return Trajectory(time=time, xyz=xyz, rpy=rpy, source=str(path))
+
+
+def write_trajectory(path: str | Path, traj: Trajectory) -> Path:
+    """Write a trajectory CSV atomically (full float precision)."""
+    cols = list(REQUIRED) + (list(ANGLES) if traj.rpy is not None else [])
+    data = np.column_stack([traj.time, traj.xyz] + ([traj.rpy] if traj.rpy is not None else []))
+    lines = [",".join(cols)] + [",".join(repr(float(v)) for v in row) for row in data]
+    return write_text_atomic(path, "\n".join(lines) + "\n")

@@ -1,0 +1,47 @@
+"""Shared fixtures: real data from ../shared/data (an error under CI=true when missing, a skip otherwise)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def shared_file(relative: str) -> Path:
+    """Path of a real data file; fails in CI and skips locally when it is missing."""
+    path = SHARED_DATA / relative
+    if not path.exists():
+        message = f"shared data file missing: {path}"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(message)
+        pytest.skip(message)
+    return path
+
+
+@pytest.fixture
+def delft_laz() -> Path:
+    return shared_file("ahn3_delft/ahn3_cropped_1.laz")
+
+
+@pytest.fixture
+def delft_footprints() -> Path:
+    return shared_file("ahn3_delft/footprints_bgt_EPSG28992.geojson")
+
+
+@pytest.fixture
+def montpellier_tiles() -> list[Path]:
+    shared_file("ign_montpellier")
+    return sorted((SHARED_DATA / "ign_montpellier").glob("*.laz"))
+
+
+@pytest.fixture
+def sample_c() -> Path:
+    return shared_file("pdal_sample_c/sample_c.las")
+
+
+@pytest.fixture
+def stbarth_laz() -> Path:
+    return shared_file("ign_stbarth/St_Barth_RGAF09_UTM20N_IGN_1988_SB_subset_100m.laz")

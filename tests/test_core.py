@@ -1,0 +1,81 @@
+"""Config resolution, local frames, atomic writes, one-line errors."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lidarmap.config import check_sections, load_toml, resolve
+from lidarmap.errors import ConfigError, InputError
+from lidarmap.frame import LocalFrame
+from lidarmap.io.atomic import atomic_path, write_text_atomic
+
+
+@dataclasses.dataclass
+class DemoParams:
+    """Test parameters."""
+
+    section = "demo_stage"
+    buffer: float = 5.0
+    iterations: int = 3
+    method: str = "fast"
+    flag: bool = False
+    bounds: tuple[float, float] | None = None
+
+
+def test_defaults_config_and_flags_override_in_order(tmp_path: Path) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[demo_stage]\nbuffer = 2\nmethod = 'slow'\nbounds = [1.0, 2.5]\n")
+    params = resolve(DemoParams, load_toml(cfg), iterations=7, method=None)
+    assert params == DemoParams(buffer=2.0, iterations=7, method="slow", bounds=(1.0, 2.5))
+    assert isinstance(params.buffer, float)
+    assert resolve(DemoParams, load_toml(cfg), method="cli").method == "cli"
+
+
+def test_config_errors(tmp_path: Path) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[demo_stage]\nbufer = 2\n")
+    with pytest.raises(ConfigError, match="unknown option 'bufer' in \\[demo_stage\\]"):
+        resolve(DemoParams, load_toml(cfg))
+    cfg.write_text("[demo_stage]\niterations = 'many'\n")
+    with pytest.raises(ConfigError, match="iterations"):
+        resolve(DemoParams, load_toml(cfg))
+    cfg.write_text("[demo_stage\n")
+    with pytest.raises(ConfigError, match="invalid TOML"):
+        load_toml(cfg)
+    with pytest.raises(ConfigError, match="not found"):
+        load_toml(tmp_path / "missing.toml")
+    with pytest.raises(ConfigError, match="unknown config table"):
+        check_sections({"demo_stage": {}, "oops": {}}, {"demo_stage"})
+
+
+def test_local_frame_round_trip_exact() -> None:
+    rng = np.random.default_rng(1)
+    xyz = rng.uniform([500000, 5800000, 0], [501000, 5801000, 50], size=(1000, 3))
+    frame = LocalFrame.around(xyz, rotation_deg=28.0)
+    local = frame.to_local(xyz)
+    assert np.abs(local[:, :2]).max() < 2000  # small numbers: float32 keeps millimetres
+    np.testing.assert_allclose(frame.to_crs(local), xyz, rtol=0, atol=1e-9)
+    again = LocalFrame.from_json(frame.to_json())
+    assert again == frame
+    # float32 storage of local coordinates still maps back within a millimetre
+    np.testing.assert_allclose(frame.to_crs(local.astype(np.float32)), xyz, atol=1e-3)
+
+
+def test_atomic_write_leaves_nothing_on_failure(tmp_path: Path) -> None:
+    target = tmp_path / "out.txt"
+    write_text_atomic(target, "first")
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("crash mid-write")
+    assert target.read_text() == "first"
+    assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]
+
+
+def test_error_message_is_one_line_with_file() -> None:
+    err = InputError("bad\nthing   happened", "/data/x.laz")
+    assert str(err) == "/data/x.laz: bad thing happened"
