@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import os
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +13,7 @@ import pytest
 from lidarmap.config import check_sections, load_toml, resolve
 from lidarmap.errors import ConfigError, InputError
 from lidarmap.frame import LocalFrame
-from lidarmap.io.atomic import atomic_path, write_text_atomic
+from lidarmap.io.atomic import atomic_dir, atomic_path, write_text_atomic
 
 
 @dataclasses.dataclass
@@ -79,3 +81,29 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path: Path) -> None:
 def test_error_message_is_one_line_with_file() -> None:
     err = InputError("bad\nthing   happened", "/data/x.laz")
     assert str(err) == "/data/x.laz: bad thing happened"
+
+
+def test_atomic_write_gives_the_mode_of_a_plain_open(tmp_path: Path) -> None:
+    # mkstemp makes 0600 files: outputs must be readable by others like any file the user writes (umask applies)
+    old = os.umask(0o022)
+    try:
+        target = write_text_atomic(tmp_path / "shared.txt", "x")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(target.stat().st_mode) == 0o644
+
+
+def test_atomic_dir_replaces_whole_or_not_at_all(tmp_path: Path) -> None:
+    target = tmp_path / "building"
+    with atomic_dir(target) as tmp:
+        (tmp / "a.txt").write_text("v1")
+    assert (target / "a.txt").read_text() == "v1"
+    with pytest.raises(RuntimeError):
+        with atomic_dir(target) as tmp:
+            (tmp / "a.txt").write_text("half")
+            raise RuntimeError("crash while filling the folder")
+    assert (target / "a.txt").read_text() == "v1"
+    with atomic_dir(target) as tmp:
+        (tmp / "b.txt").write_text("v2")
+    assert sorted(p.name for p in target.iterdir()) == ["b.txt"]  # replaced, not merged
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["building"]  # no temporary folders left

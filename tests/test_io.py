@@ -147,11 +147,18 @@ def _truncated(tmp_path: Path, src: Path) -> Path:
     return out
 
 
+def _damaged_tail(src: Path) -> bytes:
+    data = bytearray(src.read_bytes())
+    data[-2000:] = np.random.default_rng(0).integers(0, 256, 2000, dtype=np.uint8).tobytes()
+    return bytes(data)
+
+
 @pytest.mark.parametrize("case,expected", [
     ("missing", "file not found"),
     ("empty", "empty file"),
     ("garbage", "not a valid LAS/LAZ file"),
     ("truncated", "truncated"),
+    ("chunk_table", "corrupt LAZ file"),
 ])
 def test_bad_las_gives_one_line_error(tmp_path: Path, montpellier_tiles: list[Path], case: str, expected: str) -> None:
     def written(name: str, data: bytes) -> Path:
@@ -163,6 +170,8 @@ def test_bad_las_gives_one_line_error(tmp_path: Path, montpellier_tiles: list[Pa
         "empty": lambda: written("empty.laz", b""),
         "garbage": lambda: written("g.laz", b"LASF" + bytes(range(200))),
         "truncated": lambda: _truncated(tmp_path, montpellier_tiles[0]),
+        # a damaged chunk count made lazrs allocate ~40 GB and abort the process (no Python exception)
+        "chunk_table": lambda: written("chunks.laz", _damaged_tail(montpellier_tiles[0])),
     }[case]()
     result = run_cli("info", str(path))
     assert result.returncode != 0
@@ -266,3 +275,14 @@ def test_bad_trajectory_files(tmp_path: Path) -> None:
         with pytest.raises(InputError, match=message) as info:
             read_trajectory(tmp_path / name)
         assert name in str(info.value)
+
+
+def test_bad_config_names_the_file_and_keeps_table_names(tmp_path: Path) -> None:
+    config = tmp_path / "my.toml"
+    config.write_text("[simulate]\nbogus = 1\n")
+    result = run_cli("simulate", str(tmp_path / "out"), "--config", str(config))
+    assert result.returncode == 2
+    line = result.stderr.strip()
+    assert "\n" not in line and line.startswith(f"error: {config}:")
+    assert "unknown option 'bogus' in [simulate]" in line  # "[simulate]" is text, not rich markup
+    assert not (tmp_path / "out").exists()

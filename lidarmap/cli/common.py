@@ -11,13 +11,21 @@ from typing import Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from lidarmap.config import load_toml, resolve
-from lidarmap.errors import LidarmapError
+from lidarmap.errors import ConfigError, LidarmapError
 
 console = Console()
 err_console = Console(stderr=True)
+#: Table width when the output is not a terminal (a pipe or a file): wide enough that no cell is cut.
+PIPE_WIDTH = 160
+
+
+def table_console() -> Console:
+    """The shared console in a terminal; a wide one when the output goes to a pipe or a file."""
+    return console if console.is_terminal else Console(width=PIPE_WIDTH)
 
 T = TypeVar("T")
 P = TypeVar("P")
@@ -30,13 +38,22 @@ SeedOption = typer.Option(None, "--seed", help="Random seed: the same input and 
 
 
 def params_from(params_cls: type[P], config_path: Path | None, section: str | None = None, **flags: Any) -> P:
-    """Stage parameters: dataclass defaults < the config file's table < flags given on the command line."""
-    return resolve(params_cls, load_toml(config_path), section, **flags)
+    """Stage parameters: dataclass defaults < the config file's table < flags given on the command line.
+
+    A bad value or unknown key in the file is an error naming the file.
+    """
+    try:
+        return resolve(params_cls, load_toml(config_path), section, **flags)
+    except ConfigError as exc:
+        if exc.path is None and config_path is not None:
+            raise ConfigError(exc.problem, config_path) from None
+        raise
 
 
 def fail(message: str, code: int = 2) -> None:
     """Print a one-line error and exit with ``code``."""
-    err_console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    # the message is user text (file names, "[facade]" tables): never rich markup
+    err_console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 

@@ -43,7 +43,8 @@ def info(
     if summary["bounds"]:
         lo, hi = summary["bounds"]["min"], summary["bounds"]["max"]
         table.add_row("bounds", f"x {lo[0]:.3f} .. {hi[0]:.3f}\ny {lo[1]:.3f} .. {hi[1]:.3f}\nz {lo[2]:.3f} .. {hi[2]:.3f}")
-        table.add_row("density", f"{summary['density']:.1f} pts/unit² over {summary['area_covered']:.0f} unit² covered")
+        unit = _area_unit(crs_info)
+        table.add_row("density", f"{summary['density']:.1f} pts/{unit} over {summary['area_covered']:.0f} {unit} covered")
     table.add_row("classes", "\n".join(f"{k:>3} {ASPRS_CLASSES.get(int(k), ''):<18} {v:,}"
                                        for k, v in summary["classes"].items()))
     table.add_row("returns", ", ".join(f"{k}: {v:,}" for k, v in summary["returns"].items()))
@@ -51,3 +52,13 @@ def info(
         table.add_row("GPS time", f"{summary['gps_time']['min']:.3f} .. {summary['gps_time']['max']:.3f}")
     table.add_row("extra dims", ", ".join(summary["extra_dimensions"]) or "none")
     console.print(table)
+
+
+def _area_unit(crs_info: dict | None) -> str:
+    """'m²' or 'ft²' when the CRS says so; a file without CRS has unknown units."""
+    units = ((crs_info or {}).get("units") or "").lower()
+    if units in ("metre", "meter"):
+        return "m²"
+    if "foot" in units or "feet" in units:
+        return "ft²"
+    return "unit²"

@@ -40,6 +40,7 @@ for _name in COMMAND_MODULES:
 
 def main() -> None:
     """Console-script entry point: usage errors are one line too (no rich box, no traceback)."""
+    import os
     import sys
 
     from typer._click import exceptions as click_exc  # typer vendors click; its errors live here
@@ -53,11 +54,18 @@ def main() -> None:
         command = exc.ctx.command_path if exc.ctx else "lidarmap"
         typer.echo(f"error: {exc.format_message()} (see '{command} --help')", err=True)
         sys.exit(exc.exit_code)
-    except click_exc.Abort:
+    except (typer.Abort, KeyboardInterrupt):
         typer.echo("error: aborted", err=True)
         sys.exit(130)
-    except click_exc.Exit as exc:
-        sys.exit(exc.exit_code)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
+    except BrokenPipeError:
+        # output piped into a program that stopped reading (e.g. `lidarmap run --help | head`): not an error
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        sys.exit(0)
+    except SystemExit as exc:
+        if isinstance(exc.__context__, BrokenPipeError):
+            sys.exit(0)
+        raise
     sys.exit(code if isinstance(code, int) else 0)

@@ -6,6 +6,7 @@ Every failure to read becomes an :class:`~lidarmap.errors.InputError` naming the
 from __future__ import annotations
 
 from collections.abc import Iterator
+import struct
 from pathlib import Path
 
 import laspy
@@ -14,7 +15,7 @@ from pyproj import CRS
 
 from lidarmap.errors import CRSError, InputError
 from lidarmap.io.atomic import atomic_path
-from lidarmap.io.crs import describe_crs, parse_crs, same_crs
+from lidarmap.io.crs import parse_crs, same_crs
 from lidarmap.io.pointcloud import STANDARD_ATTRS, PointCloud
 
 #: Default number of points per chunk when streaming.
@@ -33,6 +34,11 @@ def _open(path: Path) -> laspy.LasReader:
     except (laspy.errors.LaspyException, ValueError, OSError, EOFError) as exc:
         raise InputError(f"not a valid LAS/LAZ file ({_short(exc)})", path) from None
     header = reader.header
+    try:
+        _check_laz_chunk_table(path, header)
+    except InputError:
+        reader.close()
+        raise
     if not (np.all(np.isfinite(header.scales)) and np.all(np.isfinite(header.offsets))):
         reader.close()
         raise InputError("header has NaN/inf scale or offset", path)
@@ -40,6 +46,40 @@ def _open(path: Path) -> laspy.LasReader:
         reader.close()
         raise InputError("header has a zero scale factor", path)
     return reader
+
+
+def _check_laz_chunk_table(path: Path, header: laspy.LasHeader) -> None:
+    """Refuse a LAZ file whose chunk table cannot be right, before lazrs reads it.
+
+    lazrs sizes its chunk table from the count stored in the file: a damaged count makes it allocate tens of GB and
+    abort the whole process (no Python exception). A LAZ file stores, right after the header, the offset of the chunk
+    table (-1: look in the file's last 8 bytes); the table starts with a version (0) and the number of chunks, which
+    cannot exceed the number of points (nor, with fixed-size chunks, ceil(points / chunk size)).
+    """
+    vlr = next((v for v in header.vlrs if v.user_id == "laszip encoded" and v.record_id == 22204), None)
+    if vlr is None:
+        return  # not compressed
+    size = path.stat().st_size
+    points = int(header.point_count)
+    with path.open("rb") as fh:
+        fh.seek(header.offset_to_point_data)
+        raw = fh.read(8)
+        if len(raw) < 8:
+            raise InputError("truncated LAZ file: no chunk table offset after the header", path)
+        (table_at,) = struct.unpack("<q", raw)
+        if table_at == -1:  # written by a streaming compressor: the offset is in the last 8 bytes
+            fh.seek(size - 8)
+            (table_at,) = struct.unpack("<q", fh.read(8))
+        if not header.offset_to_point_data + 8 <= table_at <= size - 8:
+            raise InputError(f"corrupt or truncated LAZ file: chunk table offset {table_at} lies outside the file "
+                             f"({size} bytes)", path)
+        fh.seek(table_at)
+        version, chunks = struct.unpack("<II", fh.read(8))
+    chunk_size = struct.unpack_from("<I", vlr.record_data_bytes(), 12)[0]
+    most = points if chunk_size == 0xFFFFFFFF else -(-points // max(chunk_size, 1))
+    if version != 0 or chunks > max(most, 1):
+        raise InputError(f"corrupt LAZ file: chunk table (version {version}, {chunks} chunks) does not fit "
+                         f"{points} points", path)
 
 
 def _short(exc: BaseException) -> str:

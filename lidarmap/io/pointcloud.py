@@ -13,6 +13,7 @@ STANDARD_ATTRS: dict[str, np.dtype] = {
     "return_number": np.dtype(np.uint8),
     "number_of_returns": np.dtype(np.uint8),
     "classification": np.dtype(np.uint8),
+    "synthetic": np.dtype(np.uint8),  # the LAS "synthetic" flag: 1 = created by processing (e.g. densification)
     "scan_angle": np.dtype(np.float32),  # degrees, whatever the point format stores
     "user_data": np.dtype(np.uint8),
     "point_source_id": np.dtype(np.uint16),
