@@ -1,7 +1,53 @@
-"""Commands of this area are registered here (work in progress)."""
+"""``lidarmap simulate OUT_DIR``: a procedural city scanned by simulated aerial and mobile LiDAR, with truth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
 
 import typer
+from rich.table import Table
+
+from lidarmap.cli.common import ConfigOption, SeedOption, console, handle_errors, params_from, progress
 
 
 def register(app: typer.Typer) -> None:
-    """Add this module's commands to the app."""
+    """Add ``simulate`` to the app."""
+    app.command("simulate")(simulate_command)
+
+
+@handle_errors
+def simulate_command(
+    out_dir: Path = typer.Argument(..., help="Folder to write the simulated data and truth into (created).",
+                                   file_okay=False),
+    seed: Optional[int] = SeedOption,
+    buildings: Optional[int] = typer.Option(None, "--buildings", help="Existing buildings (default 8); one "
+                                            "construction site is always added."),
+    campaigns: Optional[int] = typer.Option(None, "--campaigns", help="Mobile campaigns (default 3)."),
+    config: Optional[Path] = ConfigOption,
+) -> None:
+    """Simulate a city (aerial als.laz, mobile mls_<i>.laz + trajectory_<i>.csv, footprints.geojson, truth/)."""
+    from lidarmap.sim import SimParams, simulate  # imported here: keeps `lidarmap --help` fast
+
+    params = params_from(SimParams, config, seed=seed, buildings=buildings, campaigns=campaigns)
+    with progress() as bar:
+        tasks: dict[str, int] = {}
+
+        def report(task: str, done: int, total: int) -> None:
+            if task not in tasks:
+                tasks[task] = bar.add_task(task, total=total)
+            bar.update(tasks[task], completed=done, total=total)
+
+        result = simulate(out_dir, params, report)
+    table = Table(title=f"simulated seed {params.seed} into {result.out_dir}", title_justify="left")
+    table.add_column("file")
+    table.add_column("points", justify="right")
+    table.add_row(result.als.name, f"{result.als_points:,}")
+    for path, n in zip(result.mls, result.mls_points):
+        table.add_row(path.name, f"{n:,}")
+    for path in result.trajectories:
+        table.add_row(path.name, "")
+    table.add_row(result.footprints.name, "")
+    table.add_row("truth/", "")
+    console.print(table)
+    console.print(f"done in {result.seconds:.1f} s")

@@ -1,0 +1,265 @@
+"""``simulate``: build the city, fly it, drive it, and write the data and the ground truth."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from shapely.geometry import Polygon
+
+from lidarmap.errors import InputError
+from lidarmap.io.footprints import write_geojson_wgs84
+from lidarmap.io.las import write_las
+from lidarmap.io.trajectory import Trajectory, write_trajectory
+from lidarmap.io.npz import write_npz
+from lidarmap.mesh import write_ply_arrays
+from lidarmap.sim.aerial import scan_aerial
+from lidarmap.sim.buildings import solid_triangles
+from lidarmap.sim.city import Car, City, build_city
+from lidarmap.sim.mesh import KINDS
+from lidarmap.sim.mobile import Campaign, plan_campaign, profile_plane_normals, scan_campaign, sensor_path
+from lidarmap.sim.params import SimParams
+from lidarmap.sim.raycast import Tracer
+from lidarmap.sim.scan import Scan
+from lidarmap.sim.truth import FORMAT, VERSION, solid_mesh, write_json
+from lidarmap.sim.visibility import HitGrids, seen_grid, visible_fraction
+
+#: ``progress(task, completed, total)`` is called as work advances (task: "city", "aerial", "mobile <i>", "truth").
+Progress = Callable[[str, int, int], None]
+
+#: Header comment of the truth meshes.
+TRUTH_PLY_COMMENT = "lidarmap simulator truth, CRS coordinates"
+
+
+@dataclasses.dataclass
+class SimResult:
+    """What ``simulate`` wrote, with point counts."""
+
+    out_dir: Path
+    als: Path
+    als_points: int
+    mls: list[Path]
+    mls_points: list[int]
+    trajectories: list[Path]
+    footprints: Path
+    truth_dir: Path
+    seconds: float
+
+    def files(self) -> list[Path]:
+        return [self.als, *self.mls, *self.trajectories, self.footprints, self.truth_dir / "scene.json"]
+
+
+def simulate(out_dir: str | Path, params: SimParams | None = None, progress: Progress | None = None) -> SimResult:
+    """Simulate the scene of ``params`` (default :class:`SimParams`) into ``out_dir`` (created if needed)."""
+    params = params or SimParams()
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError("output exists and is not a folder", out)
+    (out / "truth" / "meshes").mkdir(parents=True, exist_ok=True)
+    report = progress or (lambda task, done, total: None)
+    started = time.perf_counter()
+
+    report("city", 0, 1)
+    city = build_city(params)
+    report("city", 1, 1)
+
+    als_doc = _aerial(city, params, out, report)
+    fractions: dict[int, dict[str, dict[str, float]]] = {}
+    campaign_docs = [_mobile(city, params, i, out, report, fractions) for i in range(1, params.campaigns + 1)]
+
+    report("truth", 0, 1)
+    footprints = _write_footprints(city, out / "footprints.geojson")
+    _write_meshes(city, out / "truth" / "meshes")
+    doc = _scene_doc(city, params, als_doc, campaign_docs, fractions)
+    write_json(out / "truth" / "scene.json", doc)
+    _remove_stale(out, params.campaigns, [b.id for b in city.buildings])
+    report("truth", 1, 1)
+    return SimResult(out_dir=out, als=out / "als.laz", als_points=als_doc["points"],
+                     mls=[out / c["file"] for c in campaign_docs], mls_points=[c["points"] for c in campaign_docs],
+                     trajectories=[out / c["trajectory"] for c in campaign_docs], footprints=footprints,
+                     truth_dir=out / "truth", seconds=time.perf_counter() - started)
+
+
+#: Per-campaign and per-building outputs: files of an earlier, larger simulation in the same folder are removed.
+_INDEXED = ("mls_{}.laz", "trajectory_{}.csv", "truth/mls_{}_labels.npz", "truth/visibility_{}.npz")
+
+
+def _remove_stale(out: Path, campaigns: int, building_ids: list[int]) -> None:
+    """Delete simulator outputs this run did not write (same names, other indices), so the folder is consistent."""
+    wanted = {p.format(i) for p in _INDEXED for i in range(1, campaigns + 1)}
+    wanted |= {f"truth/meshes/building_{i}.ply" for i in building_ids}
+    for template in (*_INDEXED, "truth/meshes/building_{}.ply"):
+        name = re.compile(re.escape(template).replace(r"\{\}", r"\d+"))
+        for path in sorted(out.glob(template.format("*"))):
+            relative = path.relative_to(out).as_posix()
+            if name.fullmatch(relative) and relative not in wanted:
+                path.unlink()
+
+
+def _aerial(city: City, params: SimParams, out: Path, report: Progress) -> dict:
+    rng = np.random.default_rng([params.seed, 2])
+    t0 = 300000.0 + float(rng.integers(0, 100000))
+    report("aerial", 0, 1)
+    scan, strips, cars = scan_aerial(city, params, rng, t0)
+    write_las(out / "als.laz", scan.to_cloud(city.frame, city.crs))
+    _write_labels(out / "truth" / "als_labels.npz", scan)
+    report("aerial", 1, 1)
+    return {"file": "als.laz", "labels": "truth/als_labels.npz", "points": len(scan),
+            "strips": [s.to_json(city.frame.offset) for s in strips], "cars": [_car_json(city, c) for c in cars]}
+
+
+def _mobile(city: City, params: SimParams, index: int, out: Path, report: Progress,
+            fractions: dict[int, dict[str, dict[str, float]]]) -> dict:
+    """One campaign: scan, write LAZ/trajectory/labels, compute visibility truth; returns its scene.json entry."""
+    task = f"mobile {index}"
+    rng = np.random.default_rng([params.seed, 3, index])
+    campaign = plan_campaign(rng, index, params, city)
+    cars = city.draw_cars(rng)
+    tracer = Tracer(city.scene(cars))
+    path = sensor_path(city, campaign, params)
+    done = [0]
+
+    def on_chunk(n: int, total: int) -> None:
+        done[0] += n
+        report(task, done[0], total)
+
+    hits = HitGrids(city.facades, params.visibility_cell)
+    scan = scan_campaign(campaign, params, rng, tracer, path, on_chunk,
+                         on_stops=lambda *chunk: hits.add(tracer.scene.facade_id, *chunk))
+    names = {"file": f"mls_{index}.laz", "trajectory": f"trajectory_{index}.csv",
+             "labels": f"truth/mls_{index}_labels.npz", "visibility": f"truth/visibility_{index}.npz"}
+    write_las(out / names["file"], scan.to_cloud(city.frame, city.crs, transform=campaign.misregister))
+    write_trajectory(out / names["trajectory"], _crs_trajectory(city, campaign, path))
+    _write_labels(out / names["labels"], scan)
+    _visibility(city, params, tracer, path, hits, campaign, out / names["visibility"], fractions)
+    return {"id": index, **names, "points": len(scan), **campaign.to_json(),
+            "cars": [_car_json(city, c) for c in cars]}
+
+
+def _crs_trajectory(city: City, campaign: Campaign, path) -> Trajectory:
+    """The trajectory as delivered: CRS, misregistered like the points, yaw wrapped to [-pi, pi)."""
+    xyz = campaign.misregister(city.frame.to_crs(path.xyz))
+    rpy = path.rpy.copy()
+    yaw = rpy[:, 2] + math.radians(city.frame.rotation_deg + campaign.rotation_deg)
+    rpy[:, 2] = (yaw + math.pi) % (2 * math.pi) - math.pi
+    return Trajectory(time=path.time, xyz=xyz, rpy=rpy)
+
+
+def _visibility(city: City, params: SimParams, tracer: Tracer, path, hits: HitGrids, campaign: Campaign,
+                target: Path, fractions: dict) -> None:
+    """Write the campaign's seen/hit grids and record each element's visible fractions."""
+    cell = params.visibility_cell
+    normals = profile_plane_normals(path, params.mls_tilt)
+    facades = city.facades
+    arrays: dict[str, np.ndarray] = {"facade_ids": np.array([f.id for f in facades], np.int32),
+                                     "cell_size": np.array(cell)}
+    for f in facades:
+        seen = seen_grid(tracer, f, path.xyz, normals, cell, params.mls_max_range)
+        arrays[f"seen_{f.id}"] = seen
+        arrays[f"hit_{f.id}"] = hits.grids[f.id]
+        for e in f.elements:
+            entry = fractions.setdefault(e.id, {"visible_fraction": {}, "hit_fraction": {}})
+            entry["visible_fraction"][str(campaign.id)] = visible_fraction(seen, e.rect, cell)
+            entry["hit_fraction"][str(campaign.id)] = visible_fraction(hits.grids[f.id], e.rect, cell)
+    write_npz(target, arrays)
+
+
+def _write_labels(path: Path, scan: Scan) -> None:
+    t = scan.truth
+    write_npz(path, {"classification": t["classification"].astype(np.uint8),
+                     "building_id": t["building_id"].astype(np.int32), "facade_id": t["facade_id"].astype(np.int32),
+                     "element_id": t["element_id"].astype(np.int32), "kind": t["kind"].astype(np.uint8),
+                     "kind_names": np.array(KINDS)})
+
+
+def _write_footprints(city: City, path: Path) -> Path:
+    polygons, props = [], []
+    for b in city.buildings:
+        ring = city.frame.to_crs(np.column_stack([b.ring, np.zeros(len(b.ring))]))[:, :2]
+        polygons.append(Polygon(ring))
+        height = b.planned_height if b.planned_height is not None else b.height
+        props.append({"id": b.id, "height": float(height), "status": b.status})
+    return write_geojson_wgs84(path, polygons, props, city.crs)
+
+
+def _write_meshes(city: City, folder: Path) -> None:
+    for b in city.buildings:
+        mesh = solid_mesh(solid_triangles(b), city.frame)
+        write_ply_arrays(folder / f"building_{b.id}.ply", mesh.vertices, mesh.faces, comment=TRUTH_PLY_COMMENT)
+    verts, faces = city.terrain.mesh()
+    write_ply_arrays(folder / "terrain.ply", city.frame.to_crs(verts), faces, comment=TRUTH_PLY_COMMENT)
+
+
+# --- scene.json --------------------------------------------------------------------------------------------------
+
+def _rotate(city: City, v: np.ndarray) -> np.ndarray:
+    a = math.radians(city.frame.rotation_deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]])
+
+
+def _pt(city: City, p: np.ndarray) -> list[float]:
+    return [float(v) for v in city.frame.to_crs(np.asarray(p, dtype=np.float64).reshape(1, 3))[0]]
+
+
+def _car_json(city: City, c: Car) -> dict:
+    return {"centre": _pt(city, [c.x, c.y, c.ground_z]),
+            "heading_deg": math.degrees(c.heading) + city.frame.rotation_deg,
+            "length": c.length, "width": c.width, "height": c.height}
+
+
+def _scene_doc(city: City, params: SimParams, als: dict, campaigns: list[dict], fractions: dict) -> dict:
+    return {
+        "format": FORMAT, "version": VERSION, "seed": params.seed, "params": dataclasses.asdict(params),
+        "crs": {"epsg": 32632, "wkt": city.crs.to_wkt()},
+        "local_frame": {"offset": list(city.frame.offset), "rotation_deg": city.frame.rotation_deg,
+                        "formula": "crs = Rz(rotation_deg) @ local + offset"},
+        "terrain": {**city.terrain.to_json(), "frame": "local", "mesh": "truth/meshes/terrain.ply"},
+        "kinds": list(KINDS), "classes": {"1": "other (cars)", "2": "ground", "5": "vegetation", "6": "building"},
+        "visibility_cell": params.visibility_cell,
+        "streets": [{"id": s.id, "axis": [_pt(city, [s.x0, s.y, 0.0])[:2], _pt(city, [s.x1, s.y, 0.0])[:2]]}
+                    for s in city.streets],
+        "buildings": [_building_json(city, b, fractions) for b in city.buildings],
+        "trees": [{"position": _pt(city, [t.x, t.y, t.ground_z]), "trunk_height": t.trunk_height,
+                   "trunk_radius": t.trunk_radius, "crown_radius": t.crown_radius,
+                   "crown_half_height": t.crown_half_height} for t in city.trees],
+        "als": als, "campaigns": campaigns,
+    }
+
+
+def _building_json(city: City, b, fractions: dict) -> dict:
+    ring = city.frame.to_crs(np.column_stack([b.ring, np.zeros(len(b.ring))]))[:, :2]
+    return {
+        "id": b.id, "status": b.status, "shape": b.shape, "roof_type": b.roof_type,
+        "footprint": [[float(x), float(y)] for x, y in ring], "base_z": b.base_z, "floor_z": b.floor_z,
+        "eave_z": b.eave_z, "top_z": b.top_z, "height": b.height, "planned_height": b.planned_height,
+        "ridge_edge": b.ridge_edge, "mesh": f"truth/meshes/building_{b.id}.ply",
+        "facades": [_facade_json(city, f, i, fractions) for i, f in enumerate(b.facades)],
+    }
+
+
+def _facade_json(city: City, f, edge: int, fractions: dict) -> dict:
+    u = _rotate(city, f.u)
+    normal = np.cross(u, [0.0, 0.0, 1.0])
+    origin = _pt(city, f.origin)
+    return {
+        "id": f.id, "building_id": f.building_id, "edge": edge, "origin": origin, "u": [float(v) for v in u],
+        "normal": [float(v) for v in normal], "plane_offset": float(-normal @ np.array(origin)),
+        "width": f.width, "t_bottom": f.t_bottom, "t_eave": f.t_eave, "t_top": f.t_top,
+        "street_facing": f.street_facing,
+        "elements": [_element_json(city, f, e, fractions) for e in f.elements],
+    }
+
+
+def _element_json(city: City, f, e, fractions: dict) -> dict:
+    std = np.array([[e.s0, e.t0, e.depth], [e.s1, e.t0, e.depth], [e.s1, e.t1, e.depth], [e.s0, e.t1, e.depth]])
+    corners = city.frame.to_crs(f.to_local(std))
+    frac = fractions.get(e.id, {"visible_fraction": {}, "hit_fraction": {}})
+    return {"id": e.id, "facade_id": e.facade_id, "kind": e.kind, "subtype": e.subtype,
+            "rect": [e.s0, e.s1, e.t0, e.t1], "depth": e.depth, "has_interior": e.has_interior,
+            "room": list(e.room) if e.room else None, "corners": corners.tolist(), **frac}

@@ -1,0 +1,387 @@
+"""The simulator: geometry, labels, determinism, densities, truth files and the CLI, on small scenes."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pyproj import CRS
+from shapely.geometry import Point
+from typer.testing import CliRunner
+
+from lidarmap.cli.main import app
+from lidarmap.errors import ConfigError
+from lidarmap.io.footprints import read_footprints
+from lidarmap.io.las import read_las
+from lidarmap.io.trajectory import read_trajectory
+from lidarmap.sim import SimParams, build_city, load_truth, simulate
+from lidarmap.sim.distance import MeshDistance
+from lidarmap.sim.mesh import KIND
+
+SEED = 7
+PARAMS = SimParams(seed=SEED, buildings=2, campaigns=2)
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory: pytest.TempPathFactory):
+    out = tmp_path_factory.mktemp("sim") / "scene"
+    result = simulate(out, PARAMS)
+    return result, load_truth(out)
+
+
+@pytest.fixture(scope="module")
+def city():
+    return build_city(PARAMS)
+
+
+@pytest.fixture(scope="module")
+def scene_distance(city):
+    return MeshDistance(city.static.triangles)
+
+
+def _registered_mls(truth, campaign):
+    cloud = read_las(campaign.laz)
+    return cloud, campaign.register(cloud.xyz), truth.labels(f"mls_{campaign.id}")
+
+
+# --- geometry ----------------------------------------------------------------------------------------------------
+
+def test_als_points_lie_on_true_surfaces(sim, city, scene_distance):
+    _, truth = sim
+    cloud = read_las(truth.als)
+    labels = truth.labels("als")
+    keep = np.flatnonzero(labels.kind != KIND["car"])  # cars differ per acquisition; the static scene has none
+    pick = np.random.default_rng(0).choice(keep, 4000, replace=False)
+    dist, tri = scene_distance(city.frame.to_local(cloud.xyz[pick]))
+    sigma = PARAMS.als_range_noise
+    assert np.median(dist) < sigma
+    assert dist.max() < 6 * sigma
+    assert np.mean(city.static.kind[tri] == labels.kind[pick]) > 0.98
+
+
+def test_mls_points_lie_on_true_surfaces_after_undoing_misregistration(sim, city, scene_distance):
+    _, truth = sim
+    campaign = truth.campaigns[0]
+    cloud, xyz, labels = _registered_mls(truth, campaign)
+    keep = np.flatnonzero(labels.kind != KIND["car"])
+    pick = np.random.default_rng(1).choice(keep, 4000, replace=False)
+    dist, _ = scene_distance(city.frame.to_local(xyz[pick]))
+    sigma = PARAMS.mls_range_noise
+    assert np.median(dist) < sigma
+    assert dist.max() < 6 * sigma
+    raw, _ = scene_distance(city.frame.to_local(cloud.xyz[pick]))  # the file itself is off by the misregistration
+    assert np.median(raw) > np.median(dist)
+
+
+def test_no_points_on_the_wall_plane_inside_openings(sim):
+    _, truth = sim
+    for campaign in truth.campaigns:
+        _, xyz, labels = _registered_mls(truth, campaign)
+        checked = 0
+        for facade in truth.facades.values():
+            openings = [e for e in facade.elements if e.kind in ("window", "door")]
+            if not openings:
+                continue
+            std = facade.to_facade(xyz)
+            near_plane = np.abs(std[:, 2]) < 0.03
+            for e in openings:
+                s0, s1, t0, t1 = e.rect
+                inside = (std[:, 0] > s0 + 0.05) & (std[:, 0] < s1 - 0.05) & (std[:, 1] > t0 + 0.05) \
+                    & (std[:, 1] < t1 - 0.05)
+                assert not np.any(inside & near_plane), f"points on the wall plane inside element {e.id}"
+                checked += 1
+            wall = labels.facade_id == facade.id
+            wall &= labels.kind == KIND["wall"]
+            assert np.all(np.abs(std[wall, 2]) < 6 * PARAMS.mls_range_noise + 1e-6)
+        assert checked > 10
+
+
+def test_window_points_are_recessed_and_rooms_lie_behind(sim):
+    _, truth = sim
+    campaign = truth.campaigns[0]
+    _, xyz, labels = _registered_mls(truth, campaign)
+    elements = truth.elements
+    interior = np.flatnonzero(labels.is_kind("window_interior"))
+    door = np.flatnonzero(labels.is_kind("door"))
+    assert len(interior) > 100 and len(door) > 10
+    for idx, expect in ((interior, "room"), (door, "leaf")):
+        for eid in np.unique(labels.element_id[idx])[:20]:
+            e = elements[int(eid)]
+            f = truth.facades[e.facade_id]
+            d = f.to_facade(xyz[idx[labels.element_id[idx] == eid]])[:, 2]
+            if expect == "leaf":
+                assert np.allclose(d, e.depth, atol=5 * PARAMS.mls_range_noise)
+            else:
+                assert e.has_interior and np.all(d < e.depth + 0.05) and np.all(d > e.room[4] - 0.05)
+
+
+def test_truth_labels_match_geometry(sim):
+    _, truth = sim
+    cloud = read_las(truth.als)
+    labels = truth.labels("als")
+    sigma = PARAMS.als_range_noise
+    ground = labels.classification == 2
+    dz = cloud.xyz[ground, 2] - truth.terrain_height(cloud.xyz[ground, :2])
+    assert np.abs(dz).max() < 6 * sigma
+    for b in truth.buildings:
+        mine = labels.building_id == b.id
+        surface = mine & (labels.is_kind("wall") | labels.is_kind("roof"))
+        assert surface.sum() > 50
+        dist, _ = MeshDistance(b.mesh().triangles)(cloud.xyz[surface])
+        assert dist.max() < 6 * sigma, f"building {b.id}"
+    _, xyz, mls = _registered_mls(truth, truth.campaigns[0])
+    inside = mls.is_kind("window_interior") | mls.is_kind("door")
+    for b in truth.buildings:
+        sel = inside & (mls.building_id == b.id)
+        if sel.any():
+            assert b.mesh().contains(xyz[sel]).mean() > 0.99
+    trees = truth.doc["trees"]
+    veg = np.flatnonzero(labels.classification == 5)
+    pos = np.array([t["position"] for t in trees])
+    reach = np.array([t["crown_radius"] for t in trees]) + 0.3
+    near = np.hypot(cloud.xyz[veg, 0][:, None] - pos[:, 0], cloud.xyz[veg, 1][:, None] - pos[:, 1]) < reach
+    assert near.any(axis=1).all()
+
+
+def test_facade_frames_follow_the_convention(sim):
+    _, truth = sim
+    streets = [np.array(s["axis"]) for s in truth.doc["streets"]]
+    for b in truth.buildings:
+        assert b.polygon.exterior.is_ccw
+        for f in b.facades:
+            assert abs(np.linalg.norm(f.u) - 1) < 1e-12 and abs(f.u[2]) < 1e-12
+            assert np.allclose(f.normal, np.cross(f.u, [0, 0, 1]))
+            start, end = b.footprint[f.edge], b.footprint[(f.edge + 1) % len(b.footprint)]
+            assert np.allclose(f.origin[:2], start, atol=1e-6)
+            assert np.allclose(f.origin[:2] + f.width * f.u[:2], end, atol=1e-6)
+            along = start + np.linspace(0, 1, 50)[:, None] * (end - start)
+            assert truth.terrain_height(along).min() == pytest.approx(f.origin[2], abs=0.02)
+            mid = (start + end) / 2
+            assert b.polygon.contains(Point(mid - 0.1 * f.normal[:2]))  # the normal points away from the building
+            assert not b.polygon.contains(Point(mid + 0.1 * f.normal[:2]))
+            if f.street_facing:
+                a, c = streets[0]
+                foot = a + np.clip((f.origin[:2] - a) @ (c - a) / ((c - a) @ (c - a)), 0, 1) * (c - a)
+                assert (foot - f.origin[:2]) @ f.normal[:2] > 5.0
+        assert sum(f.street_facing for f in b.facades) == 1
+
+
+def test_truth_meshes_are_watertight_in_crs(sim):
+    _, truth = sim
+    for b in truth.buildings:
+        mesh = b.mesh()
+        assert mesh.is_watertight and mesh.volume > 50
+        assert mesh.vertices.dtype == np.float64 and mesh.vertices[:, 0].min() > 500000
+        assert np.allclose(mesh.vertices[:, :2].min(axis=0), b.footprint.min(axis=0), atol=1e-6)
+        assert mesh.vertices[:, 2].max() == pytest.approx(b.top_z, abs=1e-6)
+
+
+# --- acquisition properties ----------------------------------------------------------------------------------------
+
+def test_als_density_strips_and_attributes(sim, city):
+    _, truth = sim
+    cloud = read_las(truth.als)
+    local = city.frame.to_local(cloud.xyz)
+    x0, y0, x1, y1 = city.terrain.bounds
+    inner = (local[:, 0] > x0 + 10) & (local[:, 0] < x1 - 10) & (local[:, 1] > y0 + 10) & (local[:, 1] < y1 - 10)
+    first = inner & (cloud.attrs["return_number"] == 1)
+    density = first.sum() / ((x1 - x0 - 20) * (y1 - y0 - 20))
+    assert density == pytest.approx(PARAMS.als_density, rel=0.15)
+    strips = cloud.attrs["point_source_id"]
+    assert len(np.unique(strips)) >= 2
+    for s in np.unique(strips):
+        assert np.all(np.diff(cloud.attrs["gps_time"][strips == s]) >= 0)
+    assert np.abs(cloud.attrs["scan_angle"]).max() <= PARAMS.als_scan_angle + 0.01
+    assert cloud.attrs["red"].max() > 255  # 16-bit colour
+    assert cloud.crs.to_epsg() == 32632
+
+
+def test_als_multiple_returns_in_trees(sim):
+    _, truth = sim
+    cloud = read_las(truth.als)
+    labels = truth.labels("als")
+    rn, nr = cloud.attrs["return_number"], cloud.attrs["number_of_returns"]
+    assert np.all((rn >= 1) & (rn <= nr) & (nr <= 5))
+    assert nr.max() >= 3
+    multi = nr > 1
+    assert labels.classification[multi & (rn == 1)].tolist().count(5) > 0.9 * np.sum(multi & (rn == 1))
+    # every pulse (one GPS time) numbers its returns 1..n
+    time = cloud.attrs["gps_time"][multi]
+    order = np.lexsort((rn[multi], time))
+    counts = np.unique(time[order], return_counts=True)[1]
+    assert np.array_equal(np.sort(counts), np.sort(nr[multi][rn[multi] == 1]))
+
+
+def test_als_classification_is_partial(sim):
+    _, truth = sim
+    cloud = read_las(truth.als)
+    labels = truth.labels("als")
+    delivered = cloud.attrs["classification"]
+    assert np.all(delivered[labels.classification == 2] == 2)
+    assert np.all(delivered[labels.classification == 5] == 5)
+    wall = labels.is_kind("wall")
+    assert np.mean(delivered[wall] == 1) == pytest.approx(PARAMS.als_wall_unlabelled, abs=0.1)
+    roof = labels.is_kind("roof")
+    assert 0.6 < np.mean(delivered[roof] == 6) < 0.99
+
+
+def test_mls_campaigns_differ(sim):
+    _, truth = sim
+    one, two = truth.campaigns
+    t1, t2 = read_trajectory(one.trajectory), read_trajectory(two.trajectory)
+    lateral = np.abs(one.lane_offset * one.direction - two.lane_offset * two.direction)
+    assert lateral > 2.0 and one.direction != two.direction
+    yaw_gap = np.angle(np.exp(1j * (np.median(t1.rpy[:, 2]) - np.median(t2.rpy[:, 2]))))
+    assert abs(abs(yaw_gap) - np.pi) < 0.2
+    cars = [truth.doc["campaigns"][i]["cars"] for i in range(2)]
+    assert cars[0] != cars[1]
+    v1, v2 = truth.visibility(1), truth.visibility(2)
+    street = [f.id for f in truth.facades.values() if f.street_facing]
+    assert any(not np.array_equal(v1[i]["seen"], v2[i]["seen"]) for i in street)
+    assert not np.allclose(one.translation, two.translation)
+
+
+def test_mls_density_and_labels(sim):
+    _, truth = sim
+    campaign = truth.campaigns[0]
+    cloud, xyz, labels = _registered_mls(truth, campaign)
+    assert 100_000 < len(cloud) < 2_000_000
+    assert np.mean(cloud.attrs["classification"] == labels.classification) > 0.97
+    assert set(np.unique(cloud.attrs["classification"])) <= {1, 2, 5, 6}
+    assert np.all(np.diff(cloud.attrs["gps_time"]) >= 0)
+    for f in (f for f in truth.facades.values() if f.street_facing):
+        wall = (labels.facade_id == f.id) & labels.is_kind("wall")
+        st = f.to_facade(xyz[wall])
+        low = (st[:, 1] > 0.5) & (st[:, 1] < 4.5)
+        density = low.sum() / (f.width * 4.0 * 0.8)  # about 80 % of that band is wall, not openings
+        assert 60 < density < 500
+
+
+def test_trajectory_interpolation_puts_the_sensor_on_the_street(sim):
+    _, truth = sim
+    for campaign in truth.campaigns:
+        traj = read_trajectory(campaign.trajectory)
+        cloud = read_las(campaign.laz)
+        pick = np.random.default_rng(2).choice(len(cloud), 2000, replace=False)
+        sensor = traj.position_at(cloud.attrs["gps_time"][pick])
+        a, c = np.array(truth.doc["streets"][0]["axis"])
+        axis = (c - a) / np.linalg.norm(c - a)
+        offset = sensor[:, :2] - a
+        lateral = np.abs(offset[:, 0] * axis[1] - offset[:, 1] * axis[0])
+        assert lateral.max() < 3.0
+        height = sensor[:, 2] - truth.terrain_height(sensor[:, :2])
+        assert np.allclose(height, PARAMS.mls_sensor_height, atol=0.1)
+        ranges = np.linalg.norm(cloud.xyz[pick] - sensor, axis=1)
+        assert ranges.max() < PARAMS.mls_max_range + 0.1
+        # angles follow the motion: yaw is the heading (CCW from CRS +x), positive pitch is nose down
+        step = np.gradient(traj.xyz, axis=0)[5:-5]
+        heading = np.arctan2(step[:, 1], step[:, 0])
+        assert np.abs(np.angle(np.exp(1j * (heading - traj.rpy[5:-5, 2])))).max() < 1e-3
+        climb = np.arctan2(step[:, 2], np.hypot(step[:, 0], step[:, 1]))
+        assert np.abs(climb + traj.rpy[5:-5, 1]).max() < 5e-3
+
+
+def test_windows_have_visibility_per_campaign(sim):
+    _, truth = sim
+    street_windows = [e for f in truth.facades.values() if f.street_facing for e in f.elements if e.kind == "window"]
+    assert street_windows
+    for e in street_windows:
+        assert set(e.visible_fraction) == {1, 2}
+    seen = np.array([e.visible_fraction[1] for e in street_windows])
+    assert np.median(seen) > 0.8
+    vis = truth.visibility(1)
+    cell = truth.visibility_cell
+    front = {f.building_id: f for f in truth.facades.values() if f.street_facing}
+    for f in truth.facades.values():
+        grid = vis[f.id]["seen"]
+        assert grid.shape == (int(np.ceil(f.t_top / cell)), int(np.ceil(f.width / cell)))
+        if f.normal @ front[f.building_id].normal < -0.9:
+            assert not grid.any()  # a back wall cannot be seen from the street
+
+
+# --- files ---------------------------------------------------------------------------------------------------------
+
+def test_footprints_reproject_to_the_crs_within_a_millimetre(sim):
+    result, truth = sim
+    doc = json.loads(result.footprints.read_text())
+    assert "crs" not in doc  # RFC 7946: WGS84 lon/lat
+    fps = read_footprints(result.footprints, crs=CRS.from_epsg(32632))
+    assert len(fps) == len(truth.buildings)
+    by_id = {int(p["id"]): (poly, p) for poly, p in zip(fps.polygons, fps.properties)}
+    for b in truth.buildings:
+        poly, props = by_id[b.id]
+        ring = np.asarray(poly.exterior.coords)[:-1]
+        assert np.abs(ring - b.footprint).max() < 1e-3
+        assert props["status"] == b.status
+    statuses = [p["status"] for p in fps.properties]
+    assert statuses.count("under construction") == 1
+    assert all(6.0 <= p["height"] <= 30.0 for p in fps.properties)
+
+
+def test_same_seed_gives_identical_bytes_and_another_seed_differs(sim, tmp_path):
+    result, _ = sim
+    again = simulate(tmp_path / "again", PARAMS)
+    first = sorted(p.relative_to(result.out_dir) for p in result.out_dir.rglob("*") if p.is_file())
+    second = sorted(p.relative_to(again.out_dir) for p in again.out_dir.rglob("*") if p.is_file())
+    assert first == second
+    for rel in first:
+        assert (result.out_dir / rel).read_bytes() == (again.out_dir / rel).read_bytes(), rel
+    other = simulate(tmp_path / "again", SimParams(seed=SEED + 1, buildings=2, campaigns=1))
+    assert other.als.read_bytes() != result.als.read_bytes()
+    assert other.footprints.read_text() != result.footprints.read_text()
+    assert not (other.out_dir / "mls_2.laz").exists()  # outputs of the earlier, larger run are removed
+    assert not (other.out_dir / "truth" / "visibility_2.npz").exists()
+
+
+def test_default_city_has_the_variety_the_stages_need():
+    city = build_city(SimParams(seed=3))
+    existing = [b for b in city.buildings if b.status == "existing"]
+    assert len(existing) == 8 and len(city.buildings) == 9
+    assert {b.shape for b in existing} == {"rectangle", "L"}
+    roofs = {b.roof_type for s in range(4) for b in build_city(SimParams(seed=s)).buildings}
+    assert {"flat", "gabled", "hipped"} <= roofs
+    elements = [e for f in city.facades for e in f.elements]
+    kinds = {e.kind for e in elements}
+    assert kinds == {"window", "door", "structure"}
+    windows = [e for e in elements if e.kind == "window"]
+    assert any(e.has_interior for e in windows) and not all(e.has_interior for e in windows)
+    assert all(-0.3 <= e.depth <= -0.15 for e in elements if e.kind in ("window", "door"))
+    assert all(0.1 <= e.depth <= 0.6 for e in elements if e.kind == "structure")
+    assert all(6.0 <= b.height <= 30.0 for b in existing)
+    angle = city.frame.rotation_deg % 90
+    assert 5 < angle < 85  # façades are not aligned with the CRS axes
+    assert len(city.trees) > 5
+
+
+def test_two_streets_for_many_buildings():
+    city = build_city(SimParams(seed=1, buildings=12))
+    assert len(city.streets) == 2
+    polys = [b.polygon for b in city.buildings]
+    assert not any(p.intersects(q) for i, p in enumerate(polys) for q in polys[i + 1:])
+
+
+def test_params_are_validated():
+    with pytest.raises(ConfigError):
+        SimParams(buildings=0)
+    with pytest.raises(ConfigError):
+        SimParams(mls_angular_step=0.0)
+
+
+# --- CLI -----------------------------------------------------------------------------------------------------------
+
+def test_cli_simulate(tmp_path: Path):
+    runner = CliRunner()
+    out = tmp_path / "cli"
+    result = runner.invoke(app, ["simulate", str(out), "--seed", "5", "--buildings", "1", "--campaigns", "1"])
+    assert result.exit_code == 0, result.output
+    for name in ("als.laz", "mls_1.laz", "trajectory_1.csv", "footprints.geojson", "truth/scene.json",
+                 "truth/als_labels.npz", "truth/mls_1_labels.npz", "truth/visibility_1.npz",
+                 "truth/meshes/building_1.ply", "truth/meshes/building_2.ply"):
+        assert (out / name).is_file(), name
+    assert "mls_1.laz" in result.output
+    assert read_trajectory(out / "trajectory_1.csv").rpy is not None
+    bad = runner.invoke(app, ["simulate", str(tmp_path / "bad"), "--buildings", "0"])
+    assert bad.exit_code == 2
+    assert "buildings must be between" in bad.output and "Traceback" not in bad.output
