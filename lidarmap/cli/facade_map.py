@@ -1,7 +1,451 @@
-"""Commands of this area are registered here (work in progress)."""
+"""``lidarmap map ...``: the persistent façade map, refined campaign by campaign (docs/map.md).
+
+::
+
+    lidarmap map update MAP --points MLS.laz --trajectory T.csv --footprints F.geojson   # a mobile campaign
+    lidarmap map update MAP --aerial ALS.laz [--footprints F.geojson]                    # roof planes
+    lidarmap map show MAP [--building ID] [--as-of N]
+    lidarmap map history MAP
+    lidarmap map export MAP -o city.city.json [--as-of N]
+    lidarmap map render MAP -o renders/ [--as-of N] [--building ID]
+
+``update`` holds the map's writer lock from start to end, refuses a campaign whose files were applied before (same
+bytes: :func:`lidarmap.store.campaign_fingerprint`) before reading them, and writes the new state in one
+transaction; a map that does not exist yet is created (in the points' CRS) only when the first campaign commits.
+Heavy modules are imported inside the commands so that ``lidarmap --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Optional
 
 import typer
+from rich.table import Table
 
+from lidarmap.cli.common import ConfigOption, SeedOption, handle_errors, params_from, progress, table_console
+from lidarmap.errors import ConfigError, CRSError, InputError
 
+if TYPE_CHECKING:
+    from pyproj import CRS
+
+    from lidarmap.io.footprints import Footprints
+    from lidarmap.io.pointcloud import PointCloud
+    from lidarmap.model import BuildingMap, Campaign
+    from lidarmap.store import MapStore
+
+map_app = typer.Typer(name="map", no_args_is_help=True, add_completion=False,
+                      help="The façade map: update it with a campaign, show, export (CityJSON), render, history.")
+
+MapArgument = typer.Argument(..., metavar="MAP", help="The map file (SQLite, e.g. city.lmap).", dir_okay=False)
+AsOfOption = typer.Option(None, "--as-of", help="The map as it was right after campaign N (see 'map history').")
+BuildingOption = typer.Option(None, "--building", "-b", help="Only this building (its id in the footprints).")
+
+#: Element rows ``map show`` prints without ``--building`` before it stops (a city has thousands).
+SHOW_ELEMENTS = 200
 def register(app: typer.Typer) -> None:
-    """Add this module's commands to the app."""
+    """Add the ``map`` command group to the app."""
+    app.add_typer(map_app, name="map")
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# map update
+
+
+@dataclasses.dataclass(frozen=True)
+class CampaignInputs:
+    """What one ``map update`` reads: a mobile campaign (points + trajectory) or an aerial scan."""
+
+    kind: str  # "mobile" | "aerial"
+    points: Path
+    trajectory: Path | None
+    footprints: Path | None
+    id_field: str
+    crs: str | None
+
+    @property
+    def source(self) -> str:
+        """Campaign source as history shows it: the file name(s)."""
+        return self.points.name + (f" + {self.trajectory.name}" if self.trajectory else "")
+
+
+def campaign_inputs(points: Path | None, trajectory: Path | None, aerial: Path | None, footprints: Path | None,
+                    id_field: str | None, crs: str | None) -> CampaignInputs:
+    """Check the option combination of ``map update`` (one line per mistake)."""
+    if points is None and aerial is None:
+        raise ConfigError("map update needs --points (a mobile campaign) or --aerial (an aerial scan)")
+    if points is not None and aerial is not None:
+        raise ConfigError("--points and --aerial cannot be combined: one campaign per update")
+    if points is not None and trajectory is None:
+        raise ConfigError("--points needs --trajectory (the vehicle trajectory CSV of the campaign)")
+    if points is not None and footprints is None:
+        raise ConfigError("--points needs --footprints (building footprints, GeoJSON)")
+    if aerial is not None and trajectory is not None:
+        raise ConfigError("--trajectory belongs to a mobile campaign (--points), not to --aerial")
+    kind = "mobile" if points is not None else "aerial"
+    return CampaignInputs(kind=kind, points=Path(points if points is not None else aerial), trajectory=trajectory,
+                          footprints=footprints, id_field=id_field or "id", crs=crs)
+
+
+def stage_params(config: Path | None) -> tuple[Any, Any]:
+    """FacadeParams (``[facade]``) and RefineParams (``[refine]``) from the config file; errors name the file."""
+    from lidarmap.facade import FacadeParams
+    from lidarmap.refine import RefineParams
+
+    try:
+        return params_from(FacadeParams, config), params_from(RefineParams, config)
+    except ConfigError as exc:
+        if exc.path is None and config is not None:
+            raise ConfigError(exc.problem, config) from None
+        raise
+
+
+def _refuse_applied(store: MapStore, fingerprint: str, inputs: CampaignInputs) -> None:
+    applied = store.campaign_for_fingerprint(fingerprint)
+    if applied is not None:
+        raise InputError(f"campaign already applied: {inputs.source} is campaign {applied.campaign_id} "
+                         f"(applied {applied.created[:19]}); nothing changed", store.path)
+
+
+def _map_crs(cloud: PointCloud, store: MapStore | None, points: Path) -> CRS:
+    """The map's CRS: the stored one (the points must match it) or, for a new map, the points' CRS."""
+    from pyproj import CRS
+
+    from lidarmap.io.crs import same_crs
+
+    if cloud.crs is None:
+        raise CRSError("the points have no CRS; give it with --crs (e.g. --crs EPSG:32632)", points)
+    if store is None or not store.crs_wkt:
+        return cloud.crs
+    stored = CRS.from_user_input(store.crs_wkt)
+    if not same_crs(stored, cloud.crs):
+        raise CRSError(f"the points are in {cloud.crs.name!r} but the map is in {stored.name!r}", points)
+    return stored
+
+
+def map_footprints(building_map: BuildingMap, source: Path) -> Footprints:
+    """The map's own building footprints (ids, polygons, attributes) as :class:`Footprints` in the map's CRS."""
+    import numpy as np
+    from pyproj import CRS
+
+    from lidarmap.io.crs import horizontal_crs
+    from lidarmap.io.footprints import Footprints
+
+    buildings = list(building_map.buildings.values())
+    if not buildings:
+        raise ConfigError("the map has no buildings yet: give --footprints")
+    polygons = np.empty(len(buildings), dtype=object)
+    polygons[:] = [b.footprint for b in buildings]
+    return Footprints(ids=[b.building_id for b in buildings], polygons=polygons,
+                      properties=[dict(b.attributes) for b in buildings],
+                      crs=horizontal_crs(CRS.from_user_input(building_map.crs_wkt)), source=str(source))
+
+
+def _campaign_footprints(inputs: CampaignInputs, cloud: PointCloud, stored: BuildingMap, map_path: Path) -> Footprints:
+    from lidarmap.io.footprints import check_overlap, read_footprints
+
+    if inputs.footprints is not None:
+        footprints = read_footprints(inputs.footprints, id_field=inputs.id_field, crs=cloud.crs)
+    else:
+        footprints = map_footprints(stored, map_path)
+    lo, hi = cloud.xyz.min(axis=0), cloud.xyz.max(axis=0)
+    check_overlap(footprints, (lo[0], lo[1], hi[0], hi[1]), inputs.points.name)
+    return footprints
+
+
+def _new_map(stored: BuildingMap, cloud: PointCloud, footprints: Footprints, inputs: CampaignInputs,
+             params: tuple[Any, Any], campaign_id: int, seed: int) -> BuildingMap:
+    """The refinement stage: a new map (``stored`` untouched) through the contract of ``lidarmap.refine``."""
+    from lidarmap import refine
+    from lidarmap.io.trajectory import read_trajectory
+
+    facade_params, refine_params = params
+    if inputs.kind == "aerial":
+        return refine.add_aerial(stored, cloud, footprints, refine_params, campaign_id, seed)
+    trajectory = read_trajectory(inputs.trajectory)
+    return refine.refine_map(stored, cloud, trajectory, footprints, facade_params, refine_params, campaign_id, seed)
+
+
+@dataclasses.dataclass
+class UpdateResult:
+    """What ``map update`` committed."""
+
+    campaign: Campaign
+    changes: dict[str, dict[str, int]]
+    counts: dict[str, int]
+    seconds: float
+
+
+def _campaign_record(inputs: CampaignInputs, campaign_id: int, fingerprint: str, n_points: int,
+                     counts: dict[str, int], seconds: float, seed: int) -> Campaign:
+    """The campaign row: what was applied, its fingerprint, and the map's counts after it (``map history``)."""
+    from lidarmap.model import Campaign
+
+    files = {name: str(path.resolve()) for name, path in (("points", inputs.points), ("trajectory", inputs.trajectory),
+                                                           ("footprints", inputs.footprints)) if path is not None}
+    return Campaign(campaign_id=campaign_id, kind=inputs.kind, source=inputs.source, fingerprint=fingerprint,
+                    n_points=n_points, created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+                    summary={**counts, "seconds": round(seconds, 3), "seed": seed, "files": files})
+
+
+def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, Any], seed: int,
+                   step: Callable[[str], None] = lambda name: None) -> UpdateResult:
+    """Fuse one campaign into the map (created when missing) in one transaction, under the writer lock."""
+    from lidarmap.export.summary import count_map
+    from lidarmap.io.las import read_las
+    from lidarmap.model import BuildingMap
+    from lidarmap.store import MapStore, campaign_fingerprint, writer_lock
+
+    started = time.perf_counter()
+    with writer_lock(map_path):
+        store = MapStore.open(map_path) if map_path.exists() else None
+        try:
+            step("fingerprint")
+            fingerprint = campaign_fingerprint(inputs.points, inputs.trajectory)
+            if store is not None:
+                _refuse_applied(store, fingerprint, inputs)
+            step("reading points")
+            cloud = read_las(inputs.points, crs=inputs.crs)
+            if len(cloud) == 0:
+                raise InputError("the point cloud is empty", inputs.points)
+            crs = _map_crs(cloud, store, inputs.points)
+            stored = store.load() if store is not None else BuildingMap(crs_wkt=crs.to_wkt())
+            step("reading footprints")
+            footprints = _campaign_footprints(inputs, cloud, stored, map_path)
+            campaign_id = store.next_campaign_id() if store is not None else 1
+            step("refining the map")
+            new_map = _new_map(stored, cloud, footprints, inputs, params, campaign_id, seed)
+            counts = count_map(new_map)
+            campaign = _campaign_record(inputs, campaign_id, fingerprint, len(cloud), counts,
+                                        time.perf_counter() - started, seed)
+            new_map.campaigns = [*stored.campaigns, campaign]
+            step("committing")
+            if store is None:
+                store = MapStore.create(map_path, crs.to_wkt())
+            changes = store.commit(new_map, campaign)
+        finally:
+            if store is not None:
+                store.close()
+    return UpdateResult(campaign, changes, counts, time.perf_counter() - started)
+
+
+_UPDATE_STEPS = ("fingerprint", "reading points", "reading footprints", "refining the map", "committing")
+
+
+@handle_errors
+def update_command(
+    map_path: Path = MapArgument,
+    points: Optional[Path] = typer.Option(None, "--points", help="Mobile campaign points (LAS/LAZ with GPS time).",
+                                          dir_okay=False),
+    trajectory: Optional[Path] = typer.Option(None, "--trajectory", help="Trajectory CSV of the mobile campaign.",
+                                              dir_okay=False),
+    aerial: Optional[Path] = typer.Option(None, "--aerial", help="Aerial scan (LAS/LAZ): adds roof planes.",
+                                          dir_okay=False),
+    footprints: Optional[Path] = typer.Option(None, "--footprints", help="Building footprints (GeoJSON); "
+                                              "optional with --aerial (default: the map's buildings).",
+                                              dir_okay=False),
+    id_field: Optional[str] = typer.Option(None, "--id-field", help="Footprint property holding the building id "
+                                           "(default 'id')."),
+    crs: Optional[str] = typer.Option(None, "--crs", help="CRS of the points when their file has none."),
+    seed: Optional[int] = SeedOption,
+    config: Optional[Path] = ConfigOption,
+) -> None:
+    """Fuse one campaign into the map (created if missing): façades, layers, windows, doors, occlusions or roofs."""
+    inputs = campaign_inputs(points, trajectory, aerial, footprints, id_field, crs)
+    params = stage_params(config)
+    with progress(transient=True) as bar:
+        task = bar.add_task("map update", total=len(_UPDATE_STEPS))
+
+        def step(name: str) -> None:
+            bar.update(task, description=name, completed=_UPDATE_STEPS.index(name))
+
+        result = apply_campaign(map_path, inputs, params, 0 if seed is None else seed, step)
+    _print_update(map_path, result)
+
+
+def _change_text(change: dict[str, int]) -> tuple[str, str, str]:
+    return tuple(str(change.get(k, 0)) for k in ("added", "updated", "removed"))  # type: ignore[return-value]
+
+
+def _print_update(map_path: Path, result: UpdateResult) -> None:
+    from lidarmap.store import ENTITIES
+
+    c = result.campaign
+    table = Table(title=f"campaign {c.campaign_id} ({c.kind}, {c.source}, {c.n_points:,} points) -> {map_path.name}",
+                  title_justify="left")
+    for column in ("entity", "in the map", "added", "updated", "removed"):
+        table.add_column(column, justify="left" if column == "entity" else "right")
+    in_map = {"buildings": result.counts["buildings"], "facades": result.counts["facades"],
+              "layers": result.counts["layers"], "roofs": result.counts["roofs"],
+              "elements": sum(result.counts[k] for k in ("windows", "doors", "structures", "unknown"))}
+    for entity in ENTITIES:
+        table.add_row(entity, str(in_map.get(entity, "–")), *_change_text(result.changes.get(entity, {})))
+    table_console().print(table)
+    k = result.counts
+    table_console().print(f"{k['buildings']} buildings, {k['facades']} façades, {k['windows']} windows, {k['doors']} doors, "
+                  f"{k['structures']} structures, {k['unknown']} unknown regions, {k['roofs']} roof planes; "
+                  f"done in {result.seconds:.1f} s")
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Reading commands
+
+
+def load_map(map_path: Path, as_of: int | None, building: str | None = None) -> BuildingMap:
+    """The stored map (as of a campaign), optionally reduced to one building (unknown id: one-line error)."""
+    from lidarmap.store import MapStore
+
+    with MapStore.open(map_path) as store:
+        building_map = store.load(as_of=as_of)
+    if building is not None:
+        if building not in building_map.buildings:
+            known = ", ".join(list(building_map.buildings)[:10]) or "none"
+            raise InputError(f"no building {building!r} in this map (buildings: {known})", map_path)
+        building_map.buildings = {building: building_map.buildings[building]}
+    return building_map
+
+
+def _state(building_map: BuildingMap, as_of: int | None) -> str:
+    if not building_map.campaigns:
+        return "no campaigns yet"
+    return f"as of campaign {as_of if as_of is not None else building_map.campaigns[-1].campaign_id}"
+
+
+def _ids(values: list[int]) -> str:
+    return ",".join(str(v) for v in values) or "–"
+
+
+def _epsilon(value: float) -> str:
+    return "∞" if value == float("inf") else f"{value:.3f}"
+
+
+def _buildings_table(building_map: BuildingMap, title: str) -> Table:
+    from lidarmap.export.summary import count_buildings
+
+    table = Table(title=title, title_justify="left")
+    for column in ("building", "footprint m²", "façades", "roofs", "windows", "doors", "structures", "unknown"):
+        table.add_column(column, justify="left" if column == "building" else "right")
+    for bid, b in building_map.buildings.items():
+        k = count_buildings([b])
+        table.add_row(bid, f"{b.footprint.area:.1f}", *(str(k[c]) for c in
+                                                          ("facades", "roofs", "windows", "doors", "structures",
+                                                           "unknown")))
+    return table
+
+
+def _facades_table(building_map: BuildingMap) -> Table:
+    table = Table(title="façades (normal n, plane n·x + offset = 0, σ of the main layer)", title_justify="left")
+    for column in ("building", "façade", "normal (x, y)", "offset m", "σ cm", "extent m", "layers (μ cm, σ cm, w)",
+                   "points", "campaigns"):
+        table.add_column(column, justify="left" if column in ("building", "layers (μ cm, σ cm, w)") else "right")
+    for bid, b in building_map.buildings.items():
+        for f in b.facades:
+            n = f.frame.normal
+            s0, s1, t0, t1 = f.extent
+            layers = "\n".join(f"{'*' if la.layer_id == f.main_layer else ' '}{la.layer_id}: {la.mu * 100:+.1f}, "
+                               f"{la.sigma * 100:.1f}, {la.weight:.2f}" for la in f.layers) or "–"
+            table.add_row(bid, str(f.facade_id), f"{n[0]:+.3f}, {n[1]:+.3f}", f"{f.frame.offset:.3f}",
+                          f"{f.sigma * 100:.2f}", f"{s1 - s0:.2f} × {t1 - t0:.2f}", layers, f"{f.n_points:,}",
+                          _ids(f.campaigns))
+    return table
+
+
+def _elements_table(building_map: BuildingMap, limit: int | None) -> tuple[Table, int]:
+    from lidarmap.export.summary import element_class
+
+    table = Table(title="elements (ε: uncertainty, eq. 1-3; ∞ = unknown)", title_justify="left")
+    for column in ("building", "façade", "element", "kind", "layer", "ε", "area m²", "s m", "t m", "points",
+                   "campaigns"):
+        table.add_column(column, justify="left" if column in ("building", "kind") else "right")
+    rows = [(bid, f, e) for bid, b in building_map.buildings.items() for f in b.facades for e in f.elements]
+    for bid, f, e in rows[:limit]:
+        x0, y0, x1, y1 = e.polygon.bounds
+        table.add_row(bid, str(f.facade_id), str(e.element_id), element_class(e).rstrip("s"),
+                      "–" if e.layer_id is None else str(e.layer_id), _epsilon(e.uncertainty), f"{e.polygon.area:.2f}",
+                      f"{x0:.2f}–{x1:.2f}", f"{y0:.2f}–{y1:.2f}", f"{e.n_points:,}", _ids(e.campaigns))
+    return table, len(rows)
+
+
+@handle_errors
+def show_command(map_path: Path = MapArgument, building: Optional[str] = BuildingOption,
+                 as_of: Optional[int] = AsOfOption) -> None:
+    """Tables of the map: buildings, façades (plane, σ, extent, layers), elements (kind, layer, ε, area)."""
+    from pyproj import CRS
+
+    building_map = load_map(map_path, as_of, building)
+    crs = CRS.from_user_input(building_map.crs_wkt).name if building_map.crs_wkt else "unknown CRS"
+    title = f"{map_path.name}: {_state(building_map, as_of)}, {crs}"
+    out = table_console()
+    out.print(_buildings_table(building_map, title))
+    out.print(_facades_table(building_map))
+    table, total = _elements_table(building_map, None if building else SHOW_ELEMENTS)
+    out.print(table)
+    if total > SHOW_ELEMENTS and building is None:
+        out.print(f"… {total - SHOW_ELEMENTS} more elements (use --building ID)")
+
+
+@handle_errors
+def history_command(map_path: Path = MapArgument) -> None:
+    """One row per campaign: what it was and what it changed (added ~updated -removed per entity)."""
+    from lidarmap.store import ENTITIES, MapStore
+
+    with MapStore.open(map_path) as store:
+        history = store.history()
+    table = Table(title=f"{map_path.name}: {len(history)} campaign(s)", title_justify="left")
+    for column in ("campaign", "kind", "source", "points", "created", "changes", "map after it"):
+        table.add_column(column, justify="right" if column in ("campaign", "points") else "left")
+    for campaign, changes in history:
+        text = " · ".join(f"{e} +{c['added']} ~{c['updated']} -{c['removed']}" for e in ENTITIES
+                          for c in [changes.get(e, {"added": 0, "updated": 0, "removed": 0})] if any(c.values()))
+        s = campaign.summary
+        after = ", ".join(f"{s[k]} {k}" for k in ("buildings", "facades", "windows", "doors", "structures", "unknown",
+                                                  "roofs") if k in s)
+        table.add_row(str(campaign.campaign_id), campaign.kind, campaign.source, f"{campaign.n_points:,}",
+                      campaign.created[:19], text or "nothing", after)
+    table_console().print(table)
+
+
+@handle_errors
+def export_command(map_path: Path = MapArgument,
+                   out: Path = typer.Option(..., "--output", "-o", help="CityJSON file to write (e.g. city.city.json).",
+                                            dir_okay=False),
+                   as_of: Optional[int] = AsOfOption) -> None:
+    """Write the map as CityJSON 2.0: Window/Door surfaces under their WallSurface, uncertainties as attributes."""
+    from lidarmap.export.cityjson import map_to_cityjson, write_cityjson
+    from lidarmap.export.summary import count_map
+
+    building_map = load_map(map_path, as_of)
+    doc = map_to_cityjson(building_map, title=f"{map_path.stem} ({_state(building_map, as_of)})")
+    write_cityjson(out, doc)
+    k = count_map(building_map)
+    table_console().print(f"wrote {out} (CityJSON 2.0, {_state(building_map, as_of)}): {k['buildings']} buildings, "
+                  f"{k['facades']} façades, {k['windows']} windows, {k['doors']} doors, {k['unknown']} unknown "
+                  f"regions, {len(doc['vertices']):,} vertices")
+
+
+@handle_errors
+def render_command(map_path: Path = MapArgument,
+                   out_dir: Path = typer.Option(..., "--output", "-o", help="Folder for the PNGs (created).",
+                                                file_okay=False),
+                   as_of: Optional[int] = AsOfOption, building: Optional[str] = BuildingOption,
+                   width: int = typer.Option(1200, "--width", min=300, max=8000, help="Image width in pixels.")) -> None:
+    """One PNG per façade (paper Fig. 10): layers coloured, windows red with ε, unknown regions white."""
+    from lidarmap.export.render import render_map
+
+    building_map = load_map(map_path, as_of, building)
+    with progress() as bar:
+        task = bar.add_task("rendering façades", total=None)
+        written = render_map(building_map, out_dir, width_px=width,
+                             progress=lambda done, total: bar.update(task, completed=done, total=total))
+    table_console().print(f"wrote {len(written)} façade image(s) to {out_dir} ({_state(building_map, as_of)})")
+
+
+map_app.command("update")(update_command)
+map_app.command("show")(show_command)
+map_app.command("history")(history_command)
+map_app.command("export")(export_command)
+map_app.command("render")(render_command)

@@ -1,0 +1,186 @@
+"""Façade extraction scored against simulator truth (``lidarmap.sim.load_truth``): window/door F1, plane errors.
+
+Used by tests/test_facade.py and benchmarks/bench_facade.py (and usable for refinement results, which have the same
+model). Matching rules:
+
+* an extracted façade matches the truth façade of the same building (footprint id = truth building id) whose
+  normal is within 10° and whose plane passes within 1 m of the extracted façade's centre;
+* a window/door matches a truth one of the same kind at IoU >= ``iou`` in the truth façade's (s, t) (greedy, best
+  IoU first). Only truth openings with ``visible_fraction[campaign] >= min_visible`` count (true positives and false
+  negatives); predictions on less visible truth openings (IoU > 0.1) count neither way. Truth façades that no
+  extracted façade matched contribute their visible openings as false negatives. For a map refined by several
+  campaigns pass ``campaigns``: an opening is visible when the cells seen by *any* of them (the truth's
+  per-campaign ``seen`` grids, OR-ed) cover ``min_visible`` of it;
+* the plane offset error of a matched façade is the mean distance of its extent corners (on d = 0) to the truth
+  plane, the angle error the angle between normals.
+
+``register`` maps file coordinates to true coordinates (the simulator misregisters each campaign by a few cm; pass
+``TruthCampaign.register`` to score the extraction itself, or ``None`` to include the misregistration).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+from shapely.geometry import Polygon, box
+
+from lidarmap.model import Building, ElementKind, Facade
+
+
+def _iou(a: Polygon, b: Polygon) -> float:
+    union = a.union(b).area
+    return a.intersection(b).area / union if union > 0 else 0.0
+
+
+def greedy_match(pred: list[Polygon], truth: list[Polygon], thr: float = 0.5) -> list[tuple[int, int, float]]:
+    """One-to-one matches (pred index, truth index, IoU) with IoU >= ``thr``, best IoU first."""
+    pairs = sorted(((_iou(p, t), i, j) for i, p in enumerate(pred) for j, t in enumerate(truth)), reverse=True)
+    used_p: set[int] = set()
+    used_t: set[int] = set()
+    out = []
+    for value, i, j in pairs:
+        if value < thr or i in used_p or j in used_t:
+            continue
+        used_p.add(i)
+        used_t.add(j)
+        out.append((i, j, value))
+    return out
+
+
+def _to_truth_rect(f: Facade, polygon: Polygon, tf, register) -> Polygon:
+    pts = f.frame.polygon_to_crs(polygon)
+    if register is not None:
+        pts = register(pts)
+    st = tf.to_facade(pts)[:, :2]
+    return box(st[:, 0].min(), st[:, 1].min(), st[:, 0].max(), st[:, 1].max())
+
+
+def match_facade(f: Facade, truth_facades: list, register: Callable | None = None):
+    """The truth façade an extracted façade lies on (see the module doc), or ``None``."""
+    s0, s1, t0, t1 = f.extent
+    centre = f.frame.to_crs(np.array([[0.5 * (s0 + s1), 0.5 * (t0 + t1), 0.0]]))
+    if register is not None:
+        centre = register(centre)
+    best, best_d = None, math.inf
+    for tf in truth_facades:
+        if float(tf.normal @ f.frame.normal) < math.cos(math.radians(10.0)):
+            continue
+        std = tf.to_facade(centre)[0]
+        if abs(std[2]) > 1.0 or std[0] < -1.0 or std[0] > tf.width + 1.0:
+            continue
+        if abs(std[2]) < best_d:
+            best, best_d = tf, abs(std[2])
+    return best
+
+
+def union_visibility(truth, campaigns: list[int]) -> dict[int, float]:
+    """Fraction of each truth element's cells seen by at least one of ``campaigns`` (element id -> fraction)."""
+    from lidarmap.sim.visibility import visible_fraction  # the simulator's own rule (cell centres in the rect)
+
+    grids: dict[int, np.ndarray] = {}
+    for c in campaigns:
+        for fid, g in truth.visibility(c).items():
+            grids[fid] = g["seen"] if fid not in grids else (grids[fid] | g["seen"])
+    cell = truth.visibility_cell
+    out: dict[int, float] = {}
+    for tf in truth.facades.values():
+        for e in tf.elements:
+            out[e.id] = visible_fraction(grids[tf.id], e.rect, cell) if tf.id in grids else 0.0
+    return out
+
+
+def evaluate_facades(buildings: list[Building], truth, campaign_id: int, register: Callable | None = None,
+                     iou: float = 0.5, min_visible: float = 0.9, campaigns: list[int] | None = None) -> dict:
+    """Window and door precision/recall/F1, mean IoU, plane offset and angle errors (see the module doc).
+
+    ``campaigns`` (a refined map): visibility is the union over these campaigns instead of ``campaign_id`` alone.
+    """
+    union = union_visibility(truth, campaigns) if campaigns else None
+
+    def vis(e) -> float:
+        return union.get(e.id, 0.0) if union is not None else e.visible_fraction.get(campaign_id, 0.0)
+
+    counts = {k: {"tp": 0, "fp": 0, "fn": 0} for k in ("window", "door")}
+    ious: list[float] = []
+    offsets: list[float] = []
+    angles: list[float] = []
+    matched_truth: set[int] = set()
+    by_building = {str(b.id): b for b in truth.buildings}
+    n_facades = 0
+    for b in buildings:
+        tb = by_building.get(str(b.building_id))
+        for f in b.facades:
+            n_facades += 1
+            tf = match_facade(f, tb.facades, register) if tb is not None else None
+            preds = [e for e in f.elements if e.kind in (ElementKind.WINDOW, ElementKind.DOOR)]
+            if tf is None:
+                for e in preds:
+                    counts[e.kind.value]["fp"] += 1
+                continue
+            matched_truth.add(tf.id)
+            s0, s1, t0, t1 = f.extent
+            corners = f.frame.to_crs(np.array([[s0, t0, 0.0], [s1, t0, 0.0], [s0, t1, 0.0], [s1, t1, 0.0]]))
+            if register is not None:
+                corners = register(corners)
+            offsets.append(float(np.mean(np.abs(tf.to_facade(corners)[:, 2]))))
+            angles.append(math.degrees(math.acos(min(1.0, abs(float(tf.normal @ f.frame.normal))))))
+            for kind in ("window", "door"):
+                pred = [_to_truth_rect(f, e.polygon, tf, register) for e in preds if e.kind.value == kind]
+                true = [e for e in tf.elements if e.kind == kind]
+                visible = [vis(e) >= min_visible for e in true]
+                matches = greedy_match(pred, [e.polygon for e in true], iou)
+                matched_p = {i for i, _, _ in matches}
+                matched_t = {j for _, j, _ in matches}
+                c = counts[kind]
+                for i, j, value in matches:
+                    if visible[j]:
+                        c["tp"] += 1
+                        if kind == "window":
+                            ious.append(value)
+                for i, p in enumerate(pred):
+                    if i in matched_p:
+                        continue
+                    if any(not visible[j] and _iou(p, true[j].polygon) > 0.1 for j in range(len(true))):
+                        continue
+                    c["fp"] += 1
+                c["fn"] += sum(1 for j in range(len(true)) if visible[j] and j not in matched_t)
+    for tb in truth.buildings:
+        for tf in tb.facades:
+            if tf.id in matched_truth:
+                continue
+            for e in tf.elements:
+                if e.kind in counts and vis(e) >= min_visible:
+                    counts[e.kind]["fn"] += 1
+    out: dict = {"facades": n_facades, "matched_facades": len(matched_truth)}
+    for kind, c in counts.items():
+        p = c["tp"] / max(1, c["tp"] + c["fp"])
+        r = c["tp"] / max(1, c["tp"] + c["fn"])
+        out[kind] = {**c, "precision": p, "recall": r, "f1": 2 * p * r / max(1e-12, p + r)}
+    out["window_mean_iou"] = float(np.mean(ious)) if ious else 0.0
+    out["offset_mean"] = float(np.mean(offsets)) if offsets else math.nan
+    out["offset_max"] = float(np.max(offsets)) if offsets else math.nan
+    out["angle_max_deg"] = float(np.max(angles)) if angles else math.nan
+    return out
+
+
+def map_statistics(buildings: list[Building]) -> dict:
+    """What a map says about itself (no truth needed): façade/window/door/unknown counts, unknown area (m²),
+    mean window/door uncertainty ε (eq. 3), mean and max main-layer σ (m), campaigns per façade."""
+    facades = [f for b in buildings for f in b.facades]
+    openings = [e for f in facades for e in f.elements if e.kind in (ElementKind.WINDOW, ElementKind.DOOR)]
+    unknown = [e for f in facades for e in f.elements if e.is_unknown]
+    sigmas = [f.sigma for f in facades if math.isfinite(f.sigma)]
+    eps = [e.uncertainty for e in openings if math.isfinite(e.uncertainty)]
+    return {
+        "facades": len(facades),
+        "windows": sum(1 for e in openings if e.kind is ElementKind.WINDOW),
+        "doors": sum(1 for e in openings if e.kind is ElementKind.DOOR),
+        "unknown": len(unknown),
+        "unknown_area": float(sum(e.polygon.area for e in unknown)),
+        "mean_uncertainty": float(np.mean(eps)) if eps else math.nan,
+        "sigma_mean": float(np.mean(sigmas)) if sigmas else math.nan,
+        "sigma_max": float(np.max(sigmas)) if sigmas else math.nan,
+        "campaigns_per_facade": float(np.mean([len(f.campaigns) for f in facades])) if facades else 0.0,
+    }

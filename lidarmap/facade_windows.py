@@ -1,0 +1,370 @@
+"""Façade extraction, part 4: holes -> windows, doors and unknown regions (§2.4, eq. 3).
+
+The input is a *value grid* over the façade (the paper's Figure 6): 1 = hole (not observed, not occluded, or seen
+through), 0 = occluded (or beyond the scanner's reach), -1 = wall or another object observed there. Holes are
+4-connected components of the 1-cells. A hole whose fill ratio (hole cells / bounding-box cells) reaches ``Ta`` gets
+a rectangle: Canny edges of the hole, near-vertical and near-horizontal Hough lines, every pair of vertical and pair
+of horizontal lines a candidate, and the candidate minimising eq. (3) wins.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy import ndimage
+
+from lidarmap.model import ElementKind
+
+if TYPE_CHECKING:  # pragma: no cover
+    from lidarmap.facade import FacadeParams
+
+HOLE, OCCLUDED, OBJECT = 1, 0, -1
+
+
+def window_uncertainty_eq3(values: np.ndarray, rect: tuple[int, int, int, int]) -> float:
+    """Paper eq. (3): ε_w = (N_diff + N_obj) / N_hole for a rectangle (r0, r1, c0, c1) of cells [r0, r1) x [c0, c1).
+
+    ``values`` is a value grid (1 hole, 0 occluded, -1 other object). N_hole counts the 1-cells; N_diff the cells
+    where rectangle and hole differ (non-1 cells inside the rectangle plus 1-cells outside it); N_obj the -1 cells
+    inside the rectangle (they count twice: a window does not contain wall).
+    """
+    v = np.asarray(values)
+    r0, r1, c0, c1 = rect
+    inside = v[max(r0, 0):max(r1, 0), max(c0, 0):max(c1, 0)]
+    n_hole = int(np.count_nonzero(v == HOLE))
+    if n_hole == 0:
+        return math.inf
+    ones_in = int(np.count_nonzero(inside == HOLE))
+    n_diff = (inside.size - ones_in) + (n_hole - ones_in)
+    n_obj = int(np.count_nonzero(inside == OBJECT))
+    return (n_diff + n_obj) / n_hole
+
+
+def _integral(mask: np.ndarray) -> np.ndarray:
+    out = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), dtype=np.int64)
+    out[1:, 1:] = np.cumsum(np.cumsum(mask, axis=0), axis=1)
+    return out
+
+
+def _box_sums(integral: np.ndarray, r0, r1, c0, c1) -> np.ndarray:
+    return integral[r1, c1] - integral[r0, c1] - integral[r1, c0] + integral[r0, c0]
+
+
+def hough_positions(hole: np.ndarray, params: "FacadeParams") -> tuple[np.ndarray, np.ndarray]:
+    """Column and row positions of near-vertical / near-horizontal lines on the hole's Canny edges (Hough peaks)."""
+    from skimage.feature import canny
+    from skimage.transform import hough_line, hough_line_peaks
+
+    edges = canny(hole.astype(float), sigma=params.canny_sigma, low_threshold=0.1, high_threshold=0.3)
+    if not edges.any():
+        return np.zeros(0), np.zeros(0)
+    tilt = np.radians(params.hough_max_tilt_deg)
+    k = max(1, int(params.hough_angle_steps))
+    vert = np.linspace(-tilt, tilt, 2 * k + 1)
+    horiz = np.pi / 2 + vert
+    rows, cols = hole.shape
+    result = []
+    for thetas, centre in ((vert, rows / 2.0), (horiz, cols / 2.0)):
+        acc, angles, dists = hough_line(edges, theta=thetas)
+        _, ang, dist = hough_line_peaks(acc, angles, dists, num_peaks=params.hough_lines, min_distance=2,
+                                        threshold=max(2.0, 0.2 * acc.max()))
+        if thetas is vert:  # x cos θ + y sin θ = dist  ->  x at the patch's middle row
+            pos = (dist - centre * np.sin(ang)) / np.cos(ang)
+        else:  # y at the patch's middle column
+            pos = (dist - centre * np.cos(ang)) / np.sin(ang)
+        result.append(np.asarray(pos, dtype=np.float64))
+    return result[0], result[1]
+
+
+def fit_rectangle(hole_mask: np.ndarray, values: np.ndarray | None = None,
+                  params: "FacadeParams | None" = None) -> tuple[tuple[int, int, int, int], float]:
+    """Best rectangle (r0, r1, c0, c1) — cells [r0, r1) x [c0, c1) — for a hole, minimising eq. (3), and its ε_w.
+
+    ``hole_mask`` marks the hole's cells; ``values`` (same shape, optional) gives the other cells' meaning (0
+    occluded, -1 object; default: everything else is -1). Candidate sides come from Hough lines on the hole's Canny
+    edges (each line tried at ``hough_offsets`` cells either side, since Canny puts a binary edge on either side of
+    the boundary) plus the hole's bounding box; all pairs are scored at once with integral images.
+    """
+    from lidarmap.facade import FacadeParams
+
+    params = params or FacadeParams()
+    hole = np.asarray(hole_mask, dtype=bool)
+    if values is None:
+        vals = np.where(hole, HOLE, OBJECT)
+    else:
+        vals = np.where(hole, HOLE, np.where(np.asarray(values) == HOLE, OCCLUDED, np.asarray(values)))
+    n_hole = int(hole.sum())
+    if n_hole == 0:
+        return (0, 0, 0, 0), math.inf
+    rr, cc = np.nonzero(hole)
+    pad = params.hough_offsets + 2
+    r_lo, r_hi = max(rr.min() - pad, 0), min(rr.max() + 1 + pad, hole.shape[0])
+    c_lo, c_hi = max(cc.min() - pad, 0), min(cc.max() + 1 + pad, hole.shape[1])
+    patch_hole = hole[r_lo:r_hi, c_lo:c_hi]
+    patch_vals = vals[r_lo:r_hi, c_lo:c_hi]
+    xs, ys = hough_positions(np.pad(patch_hole, 2), params)
+    xs, ys = xs - 2, ys - 2
+    off = np.arange(-params.hough_offsets, params.hough_offsets + 2)
+    # a line at pixel x may be the boundary at x (left side) or x + 1 (right side): try both plus offsets
+    bbox_cols = [cc.min() - c_lo, cc.max() + 1 - c_lo]  # the hole's bounding box is always a candidate
+    bbox_rows = [rr.min() - r_lo, rr.max() + 1 - r_lo]
+    col_cands = np.concatenate([(np.round(xs)[:, None] + off[None, :]).ravel(), bbox_cols])
+    row_cands = np.concatenate([(np.round(ys)[:, None] + off[None, :]).ravel(), bbox_rows])
+    col_cands = np.clip(col_cands, 0, patch_hole.shape[1]).astype(np.int64)
+    row_cands = np.clip(row_cands, 0, patch_hole.shape[0]).astype(np.int64)
+    col_cands, row_cands = np.unique(col_cands), np.unique(row_cands)
+    ci, cj = np.triu_indices(len(col_cands), k=1)
+    ri, rj = np.triu_indices(len(row_cands), k=1)
+    if len(ci) == 0 or len(ri) == 0:
+        rect = (int(rr.min()), int(rr.max()) + 1, int(cc.min()), int(cc.max()) + 1)
+        return rect, window_uncertainty_eq3(vals, rect)
+    c0, c1 = col_cands[ci], col_cands[cj]
+    r0, r1 = row_cands[ri], row_cands[rj]
+    ones = _integral(patch_hole)
+    objs = _integral(patch_vals == OBJECT)
+    R0, C0 = np.meshgrid(r0, c0, indexing="ij")
+    R1, C1 = np.meshgrid(r1, c1, indexing="ij")
+    ones_in = _box_sums(ones, R0, R1, C0, C1)
+    obj_in = _box_sums(objs, R0, R1, C0, C1)
+    area = (R1 - R0) * (C1 - C0)
+    eps = ((area - ones_in) + (n_hole - ones_in) + obj_in) / n_hole
+    best = np.unravel_index(int(np.argmin(eps)), eps.shape)
+    rect = (int(R0[best]) + r_lo, int(R1[best]) + r_lo, int(C0[best]) + c_lo, int(C1[best]) + c_lo)
+    return rect, float(eps[best])
+
+
+@dataclasses.dataclass
+class Opening:
+    """A hole classified as window, door or unknown; ``rect`` in cells when it has a fitted rectangle.
+
+    ``mask`` holds the hole's own cells (value 1); ``region`` adds the occluded cells that were bridged to join
+    hole parts split by a thin occluder (a pole, a trunk).
+    """
+
+    kind: ElementKind
+    mask: np.ndarray  # (rows, cols) bool
+    rect: tuple[int, int, int, int] | None
+    uncertainty: float
+    fill_ratio: float
+    occluded_border: float
+    n_cells: int
+    region: np.ndarray | None = None
+    bounds: tuple[float, float, float, float] | None = None  # s_lo, s_hi, t_lo, t_hi (metres) of the rectangle
+
+    @property
+    def window_evidence(self) -> bool:
+        """Whether the hole counts as a window/door vote (rectangular enough, maybe partly occluded)."""
+        return self.kind in (ElementKind.WINDOW, ElementKind.DOOR) or self.rect is not None
+
+
+def hole_regions(values: np.ndarray, params: "FacadeParams") -> tuple[np.ndarray, np.ndarray, int]:
+    """Hole candidates of a value grid: (hole cells, labelled regions, count).
+
+    Hole cells are the 1-cells after an opening by a ``hole_open_cells`` square (fringes of unobserved wall along
+    shadow edges are not openings); regions are 4-connected components of the hole cells after a closing by a
+    ``bridge_cells`` square that may only add occluded cells (joins the parts of an opening behind a thin
+    occluder). A square element keeps rectangles larger than it unchanged.
+    """
+    values = np.asarray(values)
+    hole = values == HOLE
+    if params.hole_open_cells > 0:
+        hole = ndimage.binary_opening(hole, structure=np.ones((2 * params.hole_open_cells + 1,) * 2, bool))
+    region = hole
+    k = params.bridge_cells
+    if k > 0 and hole.any():
+        closed = ndimage.binary_closing(np.pad(hole, k), structure=np.ones((2 * k + 1,) * 2, bool))[k:-k, k:-k]
+        region = hole | (closed & (values == OCCLUDED))
+    labels, n = ndimage.label(region)
+    return hole, labels, n
+
+
+def refine_bounds(rect: tuple[int, int, int, int], wall_st: np.ndarray | None, s0: float, t0: float, cell: float,
+                  params: "FacadeParams") -> tuple[float, float, float, float]:
+    """Sub-cell sides of a fitted rectangle (cells) from the wall points around it: (s_lo, s_hi, t_lo, t_hi).
+
+    Each side lies between the last wall sample before the opening and the next sample the scanner would have
+    taken: last + spacing / 2, with "last" the median over the bands (one cell wide) along the side of the wall
+    sample nearest the opening, and "spacing" the median gap between consecutive samples across the side. Without
+    enough points (``refine_min_points``) a side is its cell edge moved out by ``edge_bias_cells`` (a cell
+    straddling the edge holds wall samples, so the hole is on average half a cell short). A side moves at most
+    ``refine_max_cells`` from its cell edge.
+    """
+    r0, r1, c0, c1 = rect
+    b = params.edge_bias_cells * cell
+    cell_sides = [s0 + c0 * cell, s0 + c1 * cell, t0 + r0 * cell, t0 + r1 * cell]
+    out = [cell_sides[0] - b, cell_sides[1] + b, cell_sides[2] - b, cell_sides[3] + b]
+    if wall_st is None or len(wall_st) == 0 or params.refine_max_cells <= 0:
+        return tuple(out)  # type: ignore[return-value]
+    st = np.asarray(wall_st, dtype=np.float64)
+    lim = params.refine_max_cells * cell
+    reach = lim + 2 * cell
+    for k in range(4):
+        axis = 0 if k < 2 else 1  # the coordinate across this side
+        other = 1 - axis
+        lo_o, hi_o = (cell_sides[2], cell_sides[3]) if axis == 0 else (cell_sides[0], cell_sides[1])
+        if hi_o - lo_o <= 2 * cell:
+            continue
+        edge = cell_sides[k]
+        sign = -1.0 if k in (0, 2) else 1.0  # the wall lies on this side of the edge
+        across = sign * (st[:, axis] - edge)  # > 0: in the wall, < 0: inside the opening
+        sel = (across > -lim) & (across < reach) & (st[:, other] > lo_o + cell) & (st[:, other] < hi_o - cell)
+        if np.count_nonzero(sel) < params.refine_min_points:
+            continue
+        a = across[sel]
+        bands = np.floor((st[sel, other] - lo_o) / cell).astype(np.int64)
+        order = np.lexsort((a, bands))
+        a, bands = a[order], bands[order]
+        first = np.r_[True, bands[1:] != bands[:-1]]
+        nearest = a[first]  # per band: the wall sample closest to the opening
+        gaps = np.diff(a)[~first[1:]]
+        gaps = gaps[gaps > 0.25 * cell]  # samples of one scan line (noise apart) are not the spacing
+        if len(nearest) < 3:
+            continue
+        spacing = min(float(np.median(gaps)), 3 * cell) if len(gaps) else 0.0
+        pos = float(np.clip(np.median(nearest) - spacing / 2, -lim, lim))
+        out[k] = edge + sign * pos
+    return tuple(out)  # type: ignore[return-value]
+
+
+def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
+                    ground_t: np.ndarray | None = None, t0: float = 0.0, s0: float = 0.0,
+                    wall_st: np.ndarray | None = None) -> list[Opening]:
+    """Classify every hole region of a value grid (see :func:`hole_regions` and the module doc).
+
+    * fewer hole cells than ``min_hole_area``: ignored (sampling gaps);
+    * touching the left, right or top border of the grid, larger than ``max_opening_area``, more than
+      ``occlusion_touch_max`` of its border occluded, fill ratio below ``Ta``, rectangle ε_w above
+      ``max_window_uncertainty`` or a side below ``min_opening_size``: UNKNOWN (uncertainty inf);
+    * starting within ``door_bottom_tol`` of the ground (``ground_t``: ground height per grid column in façade t;
+      default: the grid's bottom edge ``t0``) and at least ``door_min_height`` tall: DOOR;
+    * otherwise WINDOW with the fitted rectangle and its eq. (3) ε_w (bridged occluded cells count as 0).
+
+    The grid's lower-left corner is (``s0``, ``t0``); ``wall_st`` (the main layer's points, (s, t)) places the
+    rectangles' sides below the cell size (:func:`refine_bounds`); sizes and the door test use those sides,
+    stored in ``Opening.bounds``.
+    """
+    values = np.asarray(values)
+    hole, labels, n = hole_regions(values, params)
+    if n == 0:
+        return []
+    rows, cols = values.shape
+    ground = np.full(cols, t0) if ground_t is None else np.asarray(ground_t, dtype=np.float64)
+    min_cells = params.min_hole_area / (cell * cell)
+    # cells cut off by the opening: unexplained, neither hole nor wall
+    work = np.where((values == HOLE) & ~hole, OCCLUDED, values)
+    slices = ndimage.find_objects(labels)
+    region_sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    hole_sizes = np.bincount(labels[hole], minlength=n + 1)
+    out: list[Opening] = []
+    for lab in range(1, n + 1):
+        n_cells = int(hole_sizes[lab])
+        if n_cells < min_cells:
+            continue
+        sl = slices[lab - 1]
+        r0, r1, c0, c1 = sl[0].start, sl[0].stop, sl[1].start, sl[1].stop
+        region = labels == lab
+        mask = region & hole
+        fill = int(region_sizes[lab]) / float((r1 - r0) * (c1 - c0))
+        # border of the region: 4-neighbours outside it
+        win = (slice(max(r0 - 1, 0), min(r1 + 1, rows)), slice(max(c0 - 1, 0), min(c1 + 1, cols)))
+        local = region[win]
+        ring = ndimage.binary_dilation(local) & ~local
+        ring_vals = work[win][ring]
+        occ_border = float(np.count_nonzero(ring_vals == OCCLUDED)) / max(1, ring_vals.size)
+        touches_edge = c0 == 0 or c1 == cols or r1 == rows
+        area = int(region_sizes[lab]) * cell * cell
+        unknown = Opening(ElementKind.UNKNOWN, mask, None, math.inf, fill, occ_border, n_cells, region)
+        if touches_edge or area > params.max_opening_area or fill < params.Ta:
+            out.append(unknown)
+            continue
+        rect, _ = fit_rectangle(region, work, params)
+        # eq. (3) on this opening alone: other holes and the bridged cells are neither hole nor object
+        eps = window_uncertainty_eq3(np.where(mask, HOLE, np.where(region | (work == HOLE), OCCLUDED, work)), rect)
+        bounds = refine_bounds(rect, wall_st, s0, t0, cell, params)
+        width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
+        if occ_border > params.occlusion_touch_max or eps > params.max_window_uncertainty \
+                or min(width, height) < params.min_opening_size:
+            unknown.rect = rect if occ_border > params.occlusion_touch_max else None
+            out.append(unknown)
+            continue
+        near_ground = bounds[2] <= float(np.mean(ground[rect[2]:rect[3]])) + params.door_bottom_tol
+        kind = ElementKind.DOOR if near_ground and height >= params.door_min_height else ElementKind.WINDOW
+        out.append(Opening(kind, mask, rect, eps, fill, occ_border, n_cells, region, bounds))
+    return out
+
+
+def complete_by_repetition(openings: list[Opening], values: np.ndarray, s0: float, t0: float, cell: float,
+                           params: "FacadeParams") -> int:
+    """Complete windows cut by an occlusion from their repeated neighbours (paper §2.1), in place.
+
+    A window with part of its border occluded takes the median height of the windows with no occluded border in
+    the same column (both sides within ``repetition_tol``) by growing its bottom (or top) side, and likewise the
+    median width of those in the same row; a side grows only across occluded or unobserved cells, stopping at the
+    first row (column) that is mostly observed wall, and only when it gets at least half-way. Its uncertainty is
+    eq. (3) of the completed rectangle: the occluded cells it now covers count. Returns how many windows changed.
+    """
+    values = np.asarray(values)
+    rows, cols = values.shape
+    clean = [op for op in openings if op.kind is ElementKind.WINDOW and op.bounds is not None
+             and op.occluded_border <= 0.05]
+    tol = params.repetition_tol
+    done = 0
+
+    def idx(x: float, origin: float, n: int) -> int:
+        return int(np.clip(np.floor((x - origin) / cell + 1e-9), 0, n - 1))
+
+    def grow(lo_side: float, target: float, step: int, origin: float, n: int, across: slice, axis: int) -> float:
+        """Move a side from ``lo_side`` towards ``target`` cell by cell (step -1: down/left, +1: up/right) while
+        the next line of cells (over ``across``) is not mostly observed."""
+        pos = lo_side
+        k = idx(lo_side - (cell / 2 if step < 0 else -cell / 2), origin, n)
+        while (target < pos if step < 0 else target > pos) and 0 <= k < n:
+            line = values[k, across] if axis == 0 else values[across, k]
+            if line.size == 0 or np.count_nonzero(line == OBJECT) > 0.5 * line.size:
+                break
+            pos = max(target, pos - cell) if step < 0 else min(target, pos + cell)
+            k += step
+        return pos
+
+    for op in openings:
+        if op.kind is not ElementKind.WINDOW or op.bounds is None or op.occluded_border <= 0.05:
+            continue
+        new = list(op.bounds)
+        column = [o.bounds for o in clean if abs(o.bounds[0] - new[0]) <= tol and abs(o.bounds[1] - new[1]) <= tol]
+        if column:
+            height = float(np.median([b[3] - b[2] for b in column]))
+            deficit = height - (new[3] - new[2])
+            if deficit > cell:
+                cs = slice(idx(new[0], s0, cols) + 1, idx(new[1], s0, cols))
+                down = grow(new[2], new[3] - height, -1, t0, rows, cs, 0)
+                if new[2] - down >= deficit / 2:
+                    new[2] = down
+                else:
+                    up = grow(new[3], new[2] + height, 1, t0, rows, cs, 0)
+                    if up - new[3] >= deficit / 2:
+                        new[3] = up
+        row = [o.bounds for o in clean if abs(o.bounds[2] - new[2]) <= tol and abs(o.bounds[3] - new[3]) <= tol]
+        if row:
+            width = float(np.median([b[1] - b[0] for b in row]))
+            deficit = width - (new[1] - new[0])
+            if deficit > cell:
+                rs = slice(idx(new[2], t0, rows) + 1, idx(new[3], t0, rows))
+                left = grow(new[0], new[1] - width, -1, s0, cols, rs, 1)
+                if new[0] - left >= deficit / 2:
+                    new[0] = left
+                else:
+                    right = grow(new[1], new[0] + width, 1, s0, cols, rs, 1)
+                    if right - new[1] >= deficit / 2:
+                        new[1] = right
+        if tuple(new) != tuple(op.bounds):
+            rect = tuple(int(np.clip(round((x - o) / cell), 0, n)) for x, o, n in
+                         ((new[2], t0, rows), (new[3], t0, rows), (new[0], s0, cols), (new[1], s0, cols)))
+            local = np.where(op.mask, HOLE, np.where(values == HOLE, OCCLUDED, values))
+            op.bounds = (new[0], new[1], new[2], new[3])
+            op.rect = rect
+            op.uncertainty = window_uncertainty_eq3(local, rect)
+            done += 1
+    return done

@@ -1,0 +1,1101 @@
+"""Fusing a new campaign into the stored building map (Zou & Sester, §2.5) and roofs from the air.
+
+Contract used by the CLI (``lidarmap map update``)::
+
+    new_map = refine_map(stored, points, trajectory, footprints, facade_params, refine_params, campaign_id, seed)
+    new_map = add_aerial(stored, cloud, footprints, refine_params, campaign_id, seed)
+
+Both return a new :class:`~lidarmap.model.BuildingMap` (``stored`` is not modified) without the campaign record;
+the caller appends the :class:`~lidarmap.model.Campaign` and commits it with :class:`~lidarmap.store.MapStore`.
+An empty ``stored`` map is built from the campaign alone (façade extraction, §2.2-2.4).
+
+Refinement of one stored façade by one campaign (:func:`refine_facade`), in the stored façade's frame:
+
+1. **Points** of the building within ``association_distance`` (2 m) of the façade's main plane, and along the wall
+   within its extent (+ ``extend_margin``, or its footprint edge), belong to it; the rest may form new façades
+   (RANSAC, :func:`lidarmap.facade.building_facades`), e.g. a wall seen for the first time.
+2. **Layers**: a GMM on the new points' depths (the same depth axis as the stored layers); components are matched to
+   stored layers (the main layer first, then the others after removing the main layer's shift, gate
+   ``layer_gate`` x the combined σ, at least ``layer_gate_min``) and fused by the Gaussian product of eq. (4)-(7)
+   (:func:`fuse_gaussians`); unmatched components become new layers.
+3. **Plane**: the new main layer's 3σ inliers give a PCA normal, combined with the stored one weighted by point counts;
+   the frame is turned about the façade's middle and moved so that the fused main layer is at d = 0 again. The
+   extent grows (whole cells, so the evidence grids stay aligned) where the new wall reaches beyond it.
+4. :func:`lidarmap.facade.observe_facade` gives what the campaign saw on the (grown) grid; the evidence grids add up:
+   ``window_votes`` / ``object_votes`` / ``seen`` count campaigns per pixel. A campaign sampling the façade more
+   sparsely than ``min_element_density`` (side walls at grazing angles) refines the plane and layers only.
+5. **Elements** of the same layer class are matched by polygon IoU (or a piece mostly inside another, so objects an
+   old occlusion split merge). Windows/doors: the best rectangle over candidate lines from the edges of all matched
+   shapes minimises the weighted eq. (3) on the vote map (:func:`refit_rectangle`, :func:`weighted_window_uncertainty`:
+   window votes weigh for, object votes against, occluded pixels nothing); ε is that weighted ratio; sides below the
+   cell size are the campaign-weighted mean of the matched shapes' sides on the chosen lines. A window whose ε
+   exceeds ``max_window_uncertainty`` on the fused votes (campaigns saw wall across it) is dropped. Structures: the
+   pixels most campaigns that saw them saw as the object; ε the point-weighted mean. Pixels claimed by objects on
+   two layers go to the one with the lower ε.
+6. **Unknown regions** lose the pixels any campaign saw as wall (``object_votes`` > 0) or a changed opening covers;
+   new ones are added only where the grid grew, so a façade's unknown area never grows.
+
+Element and façade ids stay stable: a merged object keeps the id of its oldest stored member; new objects get fresh
+ids. A campaign id already listed in a façade's ``campaigns`` is never fused again into it (re-applying is a no-op).
+
+:func:`add_aerial` adds roof planes per building from an aerial scan (the aerial pipeline's plane detector,
+:func:`lidarmap.flatten.detect_planes`) and fuses a later aerial campaign's planes with the stored ones.
+See docs/refine.md for the parameters and measured numbers.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import time
+
+import numpy as np
+import shapely
+from scipy import ndimage
+from shapely.geometry import Polygon, box
+
+from lidarmap.errors import LidarmapError
+from lidarmap.facade import (CampaignData, FacadeParams, layer_fit, building_facades, check_same_crs,
+                             extract_buildings, join_campaign, observe_facade, prepare_campaign)
+from lidarmap.facade_layers import assign_layers, grid_shape, mask_to_polygons
+from lidarmap.facade_planes import fit_line_2d, footprint_edges
+from lidarmap.facade_windows import _box_sums, _integral
+from lidarmap.io.footprints import Footprints
+from lidarmap.io.pointcloud import PointCloud
+from lidarmap.io.trajectory import Trajectory
+from lidarmap.model import (Building, BuildingMap, Element, ElementKind, Facade, FacadeEvidence, FacadeFrame, Layer,
+                            RoofPlane)
+
+__all__ = ["RefineParams", "refine_map", "add_aerial", "refine_facade", "assign_to_facades", "fuse_gaussians",
+           "match_layers", "net_votes", "weighted_window_uncertainty", "refit_rectangle", "opening_uncertainty",
+           "pad_evidence", "roof_planes", "fuse_roofs"]
+
+OPENINGS = (ElementKind.WINDOW, ElementKind.DOOR)
+
+
+@dataclasses.dataclass(frozen=True)
+class RefineParams:
+    """Parameters of refinement (TOML table ``[refine]``). Lengths in metres, angles in degrees.
+
+    Points and façades
+        association_distance (2.0): new points within this distance of a stored façade's main plane belong to it
+            (paper §2.5: two metres); farther points may form new façades (RANSAC).
+        extend_margin (2.0): ... and within this distance beyond the façade's extent along the wall (or anywhere
+            along its footprint edge): a campaign that sees more of a wall grows the façade instead of starting a
+            new one (façade extraction splits walls at gaps > 2 m, ``facade_max_gap``).
+        extend_min (0.2): the extent grows where the new main-layer points reach at least this far beyond it
+            (a few cm of misregistration must not add a row of empty cells every campaign) ...
+        extend_min_area (1.0): ... and cover at least this many m² of grid cells there (a few stray points of a
+            sparse side wall seen at a grazing angle grow nothing).
+        normal_max_angle_deg (5.0): a new PCA normal further than this from the stored one is an outlier (a
+            partial view, a different wall) and is not fused; the layers and elements still are.
+        min_element_density (20.0): a campaign that samples a façade with fewer points per m² of the cells it saw
+            (a side wall at a grazing angle: 1-2 /m², against 100-200 /m² on street façades) refines its plane and
+            layers only: at that spacing a 1 m gap is sampling, not an opening, so its elements and evidence are
+            left out.
+
+    Layers (eq. 4-7)
+        main_layer_gate (0.3): the new component nearest the stored main layer (d = 0) within this distance is
+            the main layer seen again; without one the façade is not refined by this campaign.
+        layer_gate (3.0): another new component matches a stored layer when their means (after removing the main
+            layer's shift, i.e. the campaigns' misregistration) differ by at most layer_gate x sqrt(σ0² + σ1²) ...
+        layer_gate_min (0.04): ... or this distance (the fused σ0 shrinks with every campaign; layers closer than
+            ``min_layer_separation`` are one layer anyway).
+
+    Elements
+        iou_threshold (0.3): elements of the same layer class whose polygons overlap with at least this IoU are
+            the same object (a window seen whole and one partly hidden by a car overlap by ~0.5-0.9; neighbouring
+            windows never overlap).
+        contain_fraction (0.6): an element with at least this share of its area inside another of the same class
+            is a piece of it (a window split by an old occlusion) and merges into it.
+        line_offsets (1): each shape's edges give candidate lines at this many cells either side for the
+            vote-map rectangle refit.
+        max_window_uncertainty (0.5): a window/door whose weighted eq. (3) ε exceeds this after fusion (other
+            campaigns saw wall across it) is dropped.
+        seen_fraction (0.5): a stored window is re-scored only when the new campaign saw at least this share of its
+            cells; otherwise it is left exactly as stored.
+        structure_vote (0.5): a structure keeps the pixels that at least this share of the campaigns that saw them
+            saw as the object.
+        min_conflict_area (0.02): overlaps between objects on two layers smaller than this (m²; half-cell outline
+            buffers) are not conflicts.
+
+    Roofs (aerial)
+        roof_min_height (2.0): aerial points at least this far above the ground around the footprint are roof
+            candidates ...
+        roof_ground_ring (5.0): ... the ground being the 10th percentile height of the ground points (ASPRS 2, or
+            the façade stage's height rule) within this distance of the footprint's bounding box ...
+        roof_buffer (0.5): ... within this distance of the footprint (eaves).
+        roof_min_points (30): planes with fewer inliers are ignored.
+        roof_max_slope_deg (75.0): steeper planes are walls, not roofs.
+        roof_match_angle_deg (5.0): a new roof plane matches a stored one within this normal angle ...
+        roof_match_distance (0.3): ... and this vertical distance between the planes at the middle of the new
+            outline, and overlapping outlines.
+        roof_outline_cell (0.5): outlines are concave hulls of the inliers snapped to half this size and buffered by
+            half of it (aerial point spacing is 0.3-0.5 m) ...
+        roof_concave_ratio (0.3): ... with this shapely concave_hull ratio (0 most concave, 1 convex hull).
+    """
+
+    section = "refine"
+
+    association_distance: float = 2.0
+    extend_margin: float = 2.0
+    extend_min: float = 0.2
+    extend_min_area: float = 1.0
+    normal_max_angle_deg: float = 5.0
+    min_element_density: float = 20.0
+    main_layer_gate: float = 0.3
+    layer_gate: float = 3.0
+    layer_gate_min: float = 0.04
+    iou_threshold: float = 0.3
+    contain_fraction: float = 0.6
+    line_offsets: int = 1
+    max_window_uncertainty: float = 0.5
+    seen_fraction: float = 0.5
+    structure_vote: float = 0.5
+    min_conflict_area: float = 0.02
+    roof_min_height: float = 2.0
+    roof_ground_ring: float = 5.0
+    roof_buffer: float = 0.5
+    roof_min_points: int = 30
+    roof_max_slope_deg: float = 75.0
+    roof_match_angle_deg: float = 5.0
+    roof_match_distance: float = 0.3
+    roof_outline_cell: float = 0.5
+    roof_concave_ratio: float = 0.3
+
+    def __post_init__(self) -> None:
+        positive = ("association_distance", "main_layer_gate", "layer_gate", "max_window_uncertainty")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0")
+        for name in ("iou_threshold", "contain_fraction", "seen_fraction", "structure_vote"):
+            if not 0.0 < getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in (0, 1]")
+        if min(self.line_offsets, self.extend_margin, self.extend_min, self.extend_min_area) < 0:
+            raise ValueError("line_offsets, extend_margin, extend_min and extend_min_area must be >= 0")
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Depth layers: the Gaussian product (eq. 4-7)
+
+
+def fuse_gaussians(mu0: float, sigma0: float, mu1: float, sigma1: float) -> tuple[float, float]:
+    """Paper eq. (4)-(7): N(μ0, σ0) · N(μ1, σ1) ∝ N(μ', σ') with k = σ0² / (σ0² + σ1²), μ' = μ0 + k (μ1 - μ0),
+    σ'² = σ0² - k σ0² (a Kalman update of the stored layer by the new measurement)."""
+    v0, v1 = float(sigma0) ** 2, float(sigma1) ** 2
+    if v0 + v1 <= 0:
+        return 0.5 * (float(mu0) + float(mu1)), 0.0
+    k = v0 / (v0 + v1)
+    mu = float(mu0) + k * (float(mu1) - float(mu0))
+    return mu, math.sqrt(max(v0 - k * v0, 0.0))
+
+
+def match_layers(stored: list[Layer], main_id: int | None, new: list[Layer],
+                 params: RefineParams) -> tuple[dict[int, int], float]:
+    """Match new layers (indices) to stored layer ids: {new index: stored layer id}, and the main layer's shift.
+
+    The stored main layer takes the heaviest new component within ``main_layer_gate`` of it; the other components,
+    their depths corrected by the main layer's shift (the campaigns' relative misregistration along the normal),
+    take the nearest unmatched stored layer within the gate (closest pairs first). Returns ({}, nan) when the main
+    layer was not seen again.
+    """
+    main = next((la for la in stored if la.layer_id == main_id), None)
+    if main is None or not new:
+        return {}, math.nan
+    near = [i for i, la in enumerate(new) if abs(la.mu - main.mu) <= params.main_layer_gate]
+    if not near:
+        return {}, math.nan
+    j_main = max(near, key=lambda i: (new[i].weight, -i))
+    shift = new[j_main].mu - main.mu
+    pairs = []
+    for i, la in enumerate(new):
+        if i == j_main:
+            continue
+        for old in stored:
+            if old.layer_id == main.layer_id:
+                continue
+            gap = abs(la.mu - shift - old.mu)
+            gate = max(params.layer_gate * math.hypot(old.sigma, la.sigma), params.layer_gate_min)
+            if gap <= gate:
+                pairs.append((gap, i, old.layer_id))
+    matches = {j_main: main.layer_id}
+    used = {main.layer_id}
+    for _, i, lid in sorted(pairs):
+        if i not in matches and lid not in used:
+            matches[i] = lid
+            used.add(lid)
+    return matches, shift
+
+
+def _fused_layers(stored: list[Layer], new: list[Layer], matches: dict[int, int], n_old: int, n_new: int,
+                  campaign_id: int) -> tuple[list[Layer], dict[int, int]]:
+    """Layers after the fusion (eq. 4-7 for matched pairs, unmatched new components appended with fresh ids) and
+    {new index: fused layer id}. Weights are mixtures of both campaigns' weights by point count; ``n_points`` add."""
+    total = max(n_old + n_new, 1)
+    out = [dataclasses.replace(la, campaigns=list(la.campaigns), weight=la.weight * n_old / total) for la in stored]
+    by_id = {la.layer_id: la for la in out}
+    next_id = max((la.layer_id for la in stored), default=-1) + 1
+    id_map: dict[int, int] = {}
+    for i, la in enumerate(new):
+        if i in matches:
+            old = by_id[matches[i]]
+            old.mu, old.sigma = fuse_gaussians(old.mu, old.sigma, la.mu, la.sigma)
+            old.weight += la.weight * n_new / total
+            old.n_points += int(la.n_points)
+            old.campaigns = sorted(set(old.campaigns) | {campaign_id})
+            id_map[i] = old.layer_id
+        else:
+            out.append(Layer(layer_id=next_id, mu=la.mu, sigma=la.sigma, weight=la.weight * n_new / total,
+                             n_points=int(la.n_points), campaigns=[campaign_id]))
+            id_map[i] = next_id
+            next_id += 1
+    out.sort(key=lambda la: la.layer_id)  # the store's order: a map reloaded from it is the same map
+    return out, id_map
+
+
+def _fuse_normal(n0: np.ndarray, w0: float, n1: np.ndarray, w1: float, max_angle_deg: float) -> np.ndarray:
+    """Horizontal unit normal combining the stored (n0) and new (n1) normals weighted by point counts; n0 when n1 is
+    further than ``max_angle_deg`` from it."""
+    n0 = np.asarray(n0, dtype=np.float64)[:2]
+    n1 = np.asarray(n1, dtype=np.float64)[:2]
+    if float(n0 @ n1) < 0:
+        n1 = -n1
+    if float(n0 @ n1) < math.cos(math.radians(max_angle_deg)) or w1 <= 0:
+        return n0 / np.linalg.norm(n0)
+    n = max(w0, 0.0) * n0 + w1 * n1
+    return n / np.linalg.norm(n)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Evidence grids
+
+
+@dataclasses.dataclass(frozen=True)
+class _Grid:
+    """A façade's cell grid: origin (s0, t0), cell size and shape (rows, cols)."""
+
+    s0: float
+    t0: float
+    cell: float
+    shape: tuple[int, int]
+
+    def raster(self, polygon) -> np.ndarray:
+        """Cells whose centre lies inside ``polygon``."""
+        out = np.zeros(self.shape, dtype=bool)
+        if polygon is None or polygon.is_empty:
+            return out
+        rows, cols = self.shape
+        x0, y0, x1, y1 = polygon.bounds
+        c0 = max(int(math.floor((x0 - self.s0) / self.cell)), 0)
+        c1 = min(int(math.ceil((x1 - self.s0) / self.cell)), cols)
+        r0 = max(int(math.floor((y0 - self.t0) / self.cell)), 0)
+        r1 = min(int(math.ceil((y1 - self.t0) / self.cell)), rows)
+        if c1 <= c0 or r1 <= r0:
+            return out
+        cs = self.s0 + (np.arange(c0, c1) + 0.5) * self.cell
+        ts = self.t0 + (np.arange(r0, r1) + 0.5) * self.cell
+        ss, tt = np.meshgrid(cs, ts)
+        out[r0:r1, c0:c1] = shapely.contains_xy(polygon, ss, tt)
+        return out
+
+    def line(self, x: float, axis: int) -> int:
+        """Index of the grid line nearest to coordinate ``x`` (axis 0: s / columns, 1: t / rows)."""
+        origin = self.s0 if axis == 0 else self.t0
+        return int(round((x - origin) / self.cell))
+
+    def coord(self, index: int, axis: int) -> float:
+        return (self.s0 if axis == 0 else self.t0) + index * self.cell
+
+
+def _extended_extent(extent: tuple[float, float, float, float], st: np.ndarray, cell: float,
+                     params: RefineParams) -> tuple[float, float, float, float]:
+    """The extent grown towards the new wall samples ``st`` (s, t of the main layer's points) on each side where
+    they cover at least ``extend_min_area`` of cells at least ``extend_min`` beyond it (a few stray points of a
+    sparse side wall, or a few cm of misregistration, grow nothing); the side moves to the samples' 0.1 % / 99.9 %
+    quantile. Lower sides move by whole cells so that the old grid stays aligned inside the new one."""
+    s0, s1, t0, t1 = extent
+    min_cells = params.extend_min_area / (cell * cell)
+    out = [s0, s1, t0, t1]
+    for k, (axis, sign) in enumerate(((0, -1), (0, 1), (1, -1), (1, 1))):
+        beyond = st[sign * (st[:, axis] - extent[k]) > params.extend_min]
+        if len(beyond) == 0:
+            continue
+        cells = np.unique(np.floor(beyond / cell).astype(np.int64), axis=0)
+        if len(cells) < min_cells:
+            continue
+        reach = float(np.quantile(beyond[:, axis], 0.001 if sign < 0 else 0.999))
+        if sign < 0:
+            out[k] = extent[k] - math.ceil((extent[k] - reach) / cell - 1e-9) * cell
+        else:
+            out[k] = max(extent[k], reach)
+    return out[0], out[1], out[2], out[3]
+
+
+def pad_evidence(ev: FacadeEvidence | None, extent: tuple[float, float, float, float],
+                 cell: float) -> FacadeEvidence:
+    """Evidence grids placed on the grid of a larger ``extent`` (aligned: its origin differs by whole cells);
+    zeros where the old grid did not reach. ``None`` gives all-zero grids."""
+    shape = grid_shape(extent, cell)
+    out = FacadeEvidence(cell=cell, s0=float(extent[0]), t0=float(extent[2]),
+                         window_votes=np.zeros(shape, np.int32), object_votes=np.zeros(shape, np.int32),
+                         seen=np.zeros(shape, np.int32))
+    if ev is None:
+        return out
+    r_off = int(round((ev.t0 - extent[2]) / cell))
+    c_off = int(round((ev.s0 - extent[0]) / cell))
+    rows, cols = ev.shape
+    if r_off < 0 or c_off < 0 or r_off + rows > shape[0] or c_off + cols > shape[1]:
+        raise LidarmapError("internal: the grown façade grid does not contain the stored one")
+    for name in ("window_votes", "object_votes", "seen"):
+        getattr(out, name)[r_off:r_off + rows, c_off:c_off + cols] = getattr(ev, name)
+    return out
+
+
+def _old_area(ev: FacadeEvidence | None, extent: tuple[float, float, float, float], cell: float) -> np.ndarray:
+    """Cells of the grid over ``extent`` that the stored grid ``ev`` covered (before the extent grew)."""
+    if ev is None:
+        return np.zeros(grid_shape(extent, cell), dtype=bool)
+    return pad_evidence(dataclasses.replace(ev, seen=np.ones(ev.shape, np.int32)), extent, cell).seen > 0
+
+
+def _add_evidence(a: FacadeEvidence, b: FacadeEvidence) -> FacadeEvidence:
+    """Vote grids of two observations on one grid added (campaigns per pixel)."""
+    def add(name: str) -> np.ndarray:
+        return (getattr(a, name) + getattr(b, name)).astype(np.int32)
+
+    return FacadeEvidence(cell=a.cell, s0=a.s0, t0=a.t0, window_votes=add("window_votes"),
+                          object_votes=add("object_votes"), seen=add("seen"))
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Weighted eq. (3) on the vote map
+
+
+def net_votes(window_votes: np.ndarray, object_votes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel weights of the vote map: (window weight max(W - O, 0), object weight max(O - W, 0)).
+
+    W campaigns saw the pixel as window, O as wall or another object: their votes cancel, so a pixel on a window's
+    edge that the campaigns' sampling put on either side carries little weight, a pixel every campaign saw as window
+    the most."""
+    w = np.asarray(window_votes, dtype=np.int64)
+    o = np.asarray(object_votes, dtype=np.int64)
+    return np.maximum(w - o, 0), np.maximum(o - w, 0)
+
+
+def weighted_window_uncertainty(window_votes: np.ndarray, object_votes: np.ndarray,
+                                rect: tuple[int, int, int, int]) -> float:
+    """Eq. (3) on the vote map for the rectangle (r0, r1, c0, c1) (cells [r0, r1) x [c0, c1)).
+
+    With the pixel weights of :func:`net_votes` (w window, o object): N_hole = Σw, N_diff = Σ_outside w +
+    Σ_inside o, N_obj = Σ_inside o (object pixels count twice, as in eq. 3), ε = (N_diff + N_obj) / N_hole.
+    Pixels no campaign saw as window or object -- occluded, or holes a campaign could not explain (a window split by
+    a pole's shadow) -- weigh nothing (§2.5: "the region detected as other objects instead of the occlusion would
+    count as error"). With one campaign this is eq. (3) with occluded pixels left out.
+    """
+    w, o = net_votes(window_votes, object_votes)
+    n_hole = int(w.sum())
+    if n_hole == 0:
+        return math.inf
+    r0, r1, c0, c1 = (max(int(v), 0) for v in rect)
+    inside = (slice(r0, r1), slice(c0, c1))
+    return (n_hole - int(w[inside].sum()) + 2 * int(o[inside].sum())) / n_hole
+
+
+def refit_rectangle(window_votes: np.ndarray, object_votes: np.ndarray, col_lines,
+                    row_lines) -> tuple[tuple[int, int, int, int] | None, float]:
+    """The rectangle (r0, r1, c0, c1) over candidate grid lines minimising :func:`weighted_window_uncertainty`,
+    and its ε. Every pair of column lines and every pair of row lines is a candidate; all are scored at once with
+    integral images (ties: the first candidate in line order). ``(None, inf)`` without window weight."""
+    w, o = net_votes(window_votes, object_votes)
+    n_hole = int(w.sum())
+    if n_hole == 0:
+        return None, math.inf
+    rows, cols = w.shape
+    cl = np.unique(np.clip(np.asarray(list(col_lines), dtype=np.int64), 0, cols))
+    rl = np.unique(np.clip(np.asarray(list(row_lines), dtype=np.int64), 0, rows))
+    ci, cj = np.triu_indices(len(cl), k=1)
+    ri, rj = np.triu_indices(len(rl), k=1)
+    if len(ci) == 0 or len(ri) == 0:
+        rr, cc = np.nonzero(w)
+        rect = (int(rr.min()), int(rr.max()) + 1, int(cc.min()), int(cc.max()) + 1)
+        return rect, weighted_window_uncertainty(window_votes, object_votes, rect)
+    iw, io = _integral(w), _integral(o)
+    R0, C0 = np.meshgrid(rl[ri], cl[ci], indexing="ij")
+    R1, C1 = np.meshgrid(rl[rj], cl[cj], indexing="ij")
+    err = n_hole - _box_sums(iw, R0, R1, C0, C1) + 2 * _box_sums(io, R0, R1, C0, C1)
+    best = np.unravel_index(int(np.argmin(err)), err.shape)
+    rect = (int(R0[best]), int(R1[best]), int(C0[best]), int(C1[best]))
+    return rect, float(err[best]) / n_hole
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Elements
+
+
+def _weight(e: Element) -> int:
+    return max(1, len(e.campaigns))
+
+
+def _iou_pairs(a: list, b: list, same: np.ndarray, params: RefineParams) -> list[tuple[float, int, int]]:
+    """(score, i, j) for polygons a[i], b[j] of the same class (``same[i, j]``) that are one object: IoU >=
+    ``iou_threshold``, or one lies ``contain_fraction`` inside the other. Score = IoU (pieces: their share)."""
+    if not a or not b:
+        return []
+    ga, gb = np.array(a, dtype=object), np.array(b, dtype=object)
+    ba, bb = shapely.bounds(ga), shapely.bounds(gb)
+    touch = (ba[:, None, 0] < bb[None, :, 2]) & (bb[None, :, 0] < ba[:, None, 2]) \
+        & (ba[:, None, 1] < bb[None, :, 3]) & (bb[None, :, 1] < ba[:, None, 3]) & same
+    ii, jj = np.nonzero(touch)
+    if len(ii) == 0:
+        return []
+    inter = shapely.area(shapely.intersection(ga[ii], gb[jj]))
+    area_a, area_b = shapely.area(ga[ii]), shapely.area(gb[jj])
+    union = area_a + area_b - inter
+    iou = np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+    piece = inter / np.maximum(np.minimum(area_a, area_b), 1e-12)
+    ok = (iou >= params.iou_threshold) | (piece >= params.contain_fraction)
+    return [(float(max(iou[k], 0.0)), int(ii[k]), int(jj[k])) for k in np.flatnonzero(ok)]
+
+
+def _clusters(old: list[Element], new: list[Element], key, params: RefineParams) -> list[tuple[list[int], list[int]]]:
+    """Groups (old indices, new indices) of elements that are one object (connected by :func:`_iou_pairs`)."""
+    same = np.array([[key(o) == key(n) for n in new] for o in old], dtype=bool).reshape(len(old), len(new))
+    pairs = _iou_pairs([e.polygon for e in old], [e.polygon for e in new], same, params)
+    parent = list(range(len(old) + len(new)))
+
+    def find(x: int) -> int:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for _, i, j in pairs:
+        a, b = find(i), find(len(old) + j)
+        if a != b:
+            parent[max(a, b)] = min(a, b)
+    groups: dict[int, tuple[list[int], list[int]]] = {}
+    for k in range(len(old) + len(new)):
+        g = groups.setdefault(find(k), ([], []))
+        (g[0] if k < len(old) else g[1]).append(k if k < len(old) else k - len(old))
+    return [groups[r] for r in sorted(groups)]
+
+
+def _keeper(olds: list[Element]) -> Element:
+    """The stored member whose id a merged object keeps: seen by the most campaigns, then the oldest id."""
+    return min(olds, key=lambda e: (-_weight(e), e.element_id))
+
+
+class _Ids:
+    """Fresh element ids for one façade (never an id in use or freed in this update)."""
+
+    def __init__(self, elements: list[Element]):
+        self.next = max((e.element_id for e in elements), default=-1) + 1
+
+    def __call__(self) -> int:
+        self.next += 1
+        return self.next - 1
+
+
+@dataclasses.dataclass
+class _Votes:
+    """Fused evidence of one façade on its grid, plus what the new campaign alone saw."""
+
+    grid: _Grid
+    window: np.ndarray
+    objects: np.ndarray
+    seen: np.ndarray
+    seen_new: np.ndarray
+    old_area: np.ndarray  # cells the façade's grid covered before this campaign grew it
+
+
+def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: RefineParams,
+                   extent: tuple[float, float, float, float]) -> Element | None:
+    """One window/door from matched shapes: vote-map refit over their edge lines, sub-cell sides averaged over the
+    shapes that proposed the chosen line (weighted by campaigns), kind by weighted vote. ``None`` when the fused
+    ε exceeds ``max_window_uncertainty`` (the campaigns saw wall across it)."""
+    g = votes.grid
+    off = params.line_offsets
+    bounds = np.array([[*m.polygon.bounds] for m in members])  # minx (s_lo), miny (t_lo), maxx (s_hi), maxy (t_hi)
+    pad = off + 2
+    c_lo = max(g.line(bounds[:, 0].min(), 0) - pad, 0)
+    c_hi = min(g.line(bounds[:, 2].max(), 0) + pad, g.shape[1])
+    r_lo = max(g.line(bounds[:, 1].min(), 1) - pad, 0)
+    r_hi = min(g.line(bounds[:, 3].max(), 1) + pad, g.shape[0])
+    if c_hi <= c_lo or r_hi <= r_lo:
+        return None
+    patch = (slice(r_lo, r_hi), slice(c_lo, c_hi))
+    claimed = np.zeros((r_hi - r_lo, c_hi - c_lo), dtype=bool)
+    for m in members:
+        claimed |= g.raster(m.polygon)[patch]
+    w = _own_votes(votes.window[patch], votes.objects[patch], claimed)
+    cols = [g.line(b, 0) - c_lo + k for b in np.r_[bounds[:, 0], bounds[:, 2]] for k in range(-off, off + 1)]
+    rows = [g.line(b, 1) - r_lo + k for b in np.r_[bounds[:, 1], bounds[:, 3]] for k in range(-off, off + 1)]
+    rect, eps = refit_rectangle(w, votes.objects[patch], cols, rows)
+    if rect is None or eps > params.max_window_uncertainty:
+        return None
+    weights = np.array([_weight(m) for m in members], dtype=np.float64)
+
+    def side(k: int, line: int, axis: int) -> float:
+        near = np.abs(np.array([g.line(x, axis) for x in bounds[:, k]]) - line) <= off
+        if not near.any():
+            return g.coord(line, axis)
+        return float(np.average(bounds[near, k], weights=weights[near]))
+
+    r0, r1, c0, c1 = rect
+    s_lo, s_hi = side(0, c0 + c_lo, 0), side(2, c1 + c_lo, 0)
+    t_lo, t_hi = side(1, r0 + r_lo, 1), side(3, r1 + r_lo, 1)
+    s0, s1, t0, t1 = extent
+    poly = box(max(s_lo, s0), max(t_lo, t0), min(s_hi, s1), min(t_hi, t1))
+    if poly.is_empty or poly.area <= 0:
+        return None
+    kinds: dict[ElementKind, float] = {}
+    for m, wgt in zip(members, weights):
+        kinds[m.kind] = kinds.get(m.kind, 0.0) + wgt
+    keeper = next((m for m in members if m.element_id == keep_id), members[0])
+    kind = max(kinds, key=lambda k: (kinds[k], k is keeper.kind))
+    layered = [m for m in members if m.layer_id is not None]
+    layer_id = max(layered, key=_weight).layer_id if layered else None
+    campaigns = sorted({c for m in members for c in m.campaigns})
+    return Element(element_id=keep_id, kind=kind, polygon=poly, layer_id=layer_id, uncertainty=float(eps),
+                   n_points=int(sum(m.n_points for m in members)), campaigns=campaigns)
+
+
+def _own_votes(w: np.ndarray, o: np.ndarray, claimed: np.ndarray) -> np.ndarray:
+    """Window votes of a patch restricted to the connected parts (of positive net window weight) that touch the
+    ``claimed`` cells: this opening's votes, not a neighbour's."""
+    labels, _ = ndimage.label(net_votes(w, o)[0] > 0)
+    touching = np.unique(labels[claimed & (labels > 0)])
+    return np.where(np.isin(labels, touching) & (labels > 0), w, 0)
+
+
+def opening_uncertainty(polygon, evidence: FacadeEvidence, line_offsets: int = 1) -> float:
+    """The weighted eq. (3) ε of a window/door ``polygon`` on a façade's vote map: the best rectangle whose sides
+    lie on the grid lines around the polygon's sides (+- ``line_offsets``), counting only its own opening's votes
+    (the refit a window seen by one campaign gets; for a refined window its stored ε)."""
+    g = _Grid(evidence.s0, evidence.t0, evidence.cell, evidence.shape)
+    s_lo, t_lo, s_hi, t_hi = polygon.bounds
+    pad = line_offsets + 2
+    r_lo, c_lo = max(g.line(t_lo, 1) - pad, 0), max(g.line(s_lo, 0) - pad, 0)
+    r_hi, c_hi = min(g.line(t_hi, 1) + pad, g.shape[0]), min(g.line(s_hi, 0) + pad, g.shape[1])
+    if r_hi <= r_lo or c_hi <= c_lo:
+        return math.inf
+    patch = (slice(r_lo, r_hi), slice(c_lo, c_hi))
+    o = evidence.object_votes[patch]
+    w = _own_votes(evidence.window_votes[patch], o, g.raster(polygon)[patch])
+
+    def lines(values, origin: float, lo: int) -> list[int]:
+        out = []
+        for x in values:
+            f = math.floor((x - origin) / g.cell)
+            out += [f + k - lo for k in range(-line_offsets, line_offsets + 2)]
+        return out
+
+    _, eps = refit_rectangle(w, o, lines((s_lo, s_hi), g.s0, c_lo), lines((t_lo, t_hi), g.t0, r_lo))
+    return eps
+
+
+def _rescored_opening(e: Element, votes: _Votes, params: RefineParams) -> Element | None:
+    """A stored window/door the new campaign saw but did not find: ε recomputed on the fused votes for its own
+    rectangle; ``None`` when it exceeds ``max_window_uncertainty`` (now voted down)."""
+    g = votes.grid
+    cells = g.raster(e.polygon)
+    if not cells.any() or votes.seen_new[cells].astype(bool).mean() < params.seen_fraction:
+        return e
+    evidence = FacadeEvidence(g.cell, g.s0, g.t0, votes.window, votes.objects, votes.seen)
+    eps = opening_uncertainty(e.polygon, evidence, params.line_offsets)
+    if eps > params.max_window_uncertainty:
+        return None
+    return dataclasses.replace(e, uncertainty=float(eps))
+
+
+def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _Ids, params: RefineParams,
+                   extent: tuple[float, float, float, float]) -> tuple[list[Element], set[int]]:
+    """Windows and doors after the fusion, and the ids of those that changed (merged, added or re-scored)."""
+    out: list[Element] = []
+    changed: set[int] = set()
+    for oi, ni in _clusters(old, new, lambda e: "opening", params):
+        olds, news = [old[i] for i in oi], [new[j] for j in ni]
+        if not news:
+            for e in olds:
+                rescored = _rescored_opening(e, votes, params)
+                if rescored is not None:
+                    out.append(rescored)
+                    if rescored is not e:
+                        changed.add(e.element_id)
+            continue
+        keep_id = _keeper(olds).element_id if olds else ids()
+        merged = _merge_opening(olds + news, keep_id, votes, params, extent)
+        if merged is not None:
+            out.append(merged)
+            changed.add(keep_id)
+        elif olds:  # the new shape is voted down: keep the stored ones as they were
+            out.extend(olds)
+    return out, changed
+
+
+def _merge_structure(members: list[Element], keep_id: int, votes: _Votes, params: RefineParams,
+                     min_area: float) -> Element | None:
+    """One irregular object from matched shapes of one layer: the pixels that at least ``structure_vote`` of the
+    campaigns that saw them saw as the object; ε the point-weighted mean of the members' eq. (1)-(2) ε."""
+    g = votes.grid
+    count = np.zeros(g.shape, dtype=np.float64)
+    for m in members:
+        count += _weight(m) * g.raster(m.polygon)
+    keep = (count > 0) & (count >= params.structure_vote * np.maximum(votes.seen, 1))
+    parts = [p for p in mask_to_polygons(keep, g.s0, g.t0, g.cell) if p.area >= min_area]
+    if not parts:
+        return None
+    poly = max(parts, key=lambda p: p.area)
+    n = np.array([max(m.n_points, 1) for m in members], dtype=np.float64)
+    eps = float(np.average([m.uncertainty for m in members], weights=n))
+    return Element(element_id=keep_id, kind=ElementKind.STRUCTURE, polygon=poly,
+                   layer_id=max(members, key=_weight).layer_id, uncertainty=eps,
+                   n_points=int(sum(m.n_points for m in members)),
+                   campaigns=sorted({c for m in members for c in m.campaigns}))
+
+
+def _fuse_structures(old: list[Element], new: list[Element], votes: _Votes, ids: _Ids, params: RefineParams,
+                     min_area: float) -> tuple[list[Element], set[int]]:
+    out: list[Element] = []
+    changed: set[int] = set()
+    for oi, ni in _clusters(old, new, lambda e: e.layer_id, params):
+        olds, news = [old[i] for i in oi], [new[j] for j in ni]
+        if not news:
+            out.extend(olds)
+            continue
+        if not olds:
+            e = dataclasses.replace(news[0], element_id=ids())
+            out.append(e)
+            changed.add(e.element_id)
+            continue
+        keep_id = _keeper(olds).element_id
+        merged = _merge_structure(olds + news, keep_id, votes, params, min_area)
+        out.append(merged if merged is not None else _keeper(olds))
+        changed.add(keep_id)
+    return out, changed
+
+
+def _resolve_layer_conflicts(elements: list[Element], changed: set[int], params: RefineParams,
+                             min_area: float) -> list[Element]:
+    """Pixels claimed by objects on two layers go to the one with the lower ε (only pairs where one of them
+    changed in this update: the others were resolved before). Losers shrinking below ``min_area`` are dropped."""
+    layered = [e for e in elements if e.layer_id is not None and not e.is_unknown]
+    polys = {e.element_id: e.polygon for e in layered}
+    for a in layered:
+        for b in layered:
+            if a.element_id >= b.element_id or a.layer_id == b.layer_id:
+                continue
+            if a.element_id not in changed and b.element_id not in changed:
+                continue
+            pa, pb = polys[a.element_id], polys[b.element_id]
+            if pa.is_empty or pb.is_empty or pa.intersection(pb).area < params.min_conflict_area:
+                continue
+            loser, winner = (a, b) if (a.uncertainty, a.element_id) > (b.uncertainty, b.element_id) else (b, a)
+            rest = polys[loser.element_id].difference(polys[winner.element_id])
+            parts = [p for p in getattr(rest, "geoms", [rest]) if isinstance(p, Polygon) and not p.is_empty]
+            polys[loser.element_id] = max(parts, key=lambda p: p.area) if parts else Polygon()
+            changed.add(loser.element_id)
+    out = []
+    for e in elements:
+        poly = polys.get(e.element_id)
+        if poly is None or poly is e.polygon:
+            out.append(e)
+        elif not poly.is_empty and poly.area >= min_area:
+            out.append(dataclasses.replace(e, polygon=poly))
+    return out
+
+
+def _fuse_unknown(old: list[Element], new: list[Element], openings: list[Element], changed: set[int], votes: _Votes,
+                  ids: _Ids, campaign_id: int, min_cells: int) -> list[Element]:
+    """Unknown regions after the fusion. Stored regions lose the pixels any campaign saw as wall or object
+    (``object_votes`` > 0) and those of openings this update changed; a stored region keeps its id (its largest
+    remaining piece) and stays exactly as stored when nothing of it was resolved. The new campaign's regions add
+    only where the façade's grid grew (inside the old grid a pixel the old campaigns did not flag was known, or
+    not part of the wall): a later campaign adds knowledge, so the unknown area of a façade can only shrink. They
+    get fresh ids."""
+    g = votes.grid
+    covered = np.zeros(g.shape, dtype=bool)
+    covered_now = np.zeros(g.shape, dtype=bool)
+    for e in openings:
+        cells = g.raster(e.polygon)
+        covered |= cells
+        if e.element_id in changed:
+            covered_now |= cells
+    resolved = (votes.objects > 0) | covered_now
+    out: list[Element] = []
+    for e in old:
+        cells = g.raster(e.polygon)
+        if not (cells & resolved).any():
+            out.append(e)
+            continue
+        parts = [p for p in mask_to_polygons(cells & ~resolved, g.s0, g.t0, g.cell)
+                 if p.area >= min_cells * g.cell ** 2 - 1e-9]
+        parts.sort(key=lambda p: -p.area)
+        for k, poly in enumerate(parts):
+            out.append(Element(element_id=e.element_id if k == 0 else ids(), kind=ElementKind.UNKNOWN, polygon=poly,
+                               layer_id=None, uncertainty=math.inf, n_points=0,
+                               campaigns=sorted(set(e.campaigns) | {campaign_id})))
+    fresh = np.zeros(g.shape, dtype=bool)
+    for e in new:
+        fresh |= g.raster(e.polygon)
+    fresh &= ~votes.old_area & ~resolved & ~covered
+    labels, n = ndimage.label(fresh)
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    for lab in range(1, n + 1):
+        if sizes[lab] < min_cells:
+            continue
+        for poly in mask_to_polygons(labels == lab, g.s0, g.t0, g.cell):
+            out.append(Element(element_id=ids(), kind=ElementKind.UNKNOWN, polygon=poly, layer_id=None,
+                               uncertainty=math.inf, n_points=0, campaigns=[campaign_id]))
+    return out
+
+
+def _fuse_elements(stored: Facade, obs: Facade, layer_map: dict[int, int], votes: _Votes, fparams: FacadeParams,
+                   params: RefineParams, campaign_id: int) -> list[Element]:
+    """All elements of a façade after fusing the campaign's observation ``obs`` (its layer ids mapped to the fused
+    ones by ``layer_map``)."""
+    ids = _Ids(stored.elements)
+    new = [dataclasses.replace(e, layer_id=None if e.layer_id is None else layer_map[e.layer_id])
+           for e in obs.elements]
+
+    def of(elements, *kinds):
+        return [e for e in elements if e.kind in kinds and not e.is_unknown]
+
+    openings, changed = _fuse_openings(of(stored.elements, *OPENINGS), of(new, *OPENINGS), votes, ids, params,
+                                       obs.extent)
+    min_area = fparams.min_object_area
+    structures, changed_s = _fuse_structures(of(stored.elements, ElementKind.STRUCTURE),
+                                             of(new, ElementKind.STRUCTURE), votes, ids, params, min_area)
+    changed |= changed_s
+    objects = _resolve_layer_conflicts(openings + structures, changed, params, min_area)
+    min_cells = max(1, int(math.ceil(fparams.min_unknown_area / (fparams.cell ** 2) - 1e-9)))
+    unknown = _fuse_unknown([e for e in stored.elements if e.is_unknown], [e for e in new if e.is_unknown],
+                            [e for e in objects if e.kind in OPENINGS], changed, votes, ids, campaign_id, min_cells)
+    return sorted(objects + unknown, key=lambda e: e.element_id)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# One façade
+
+
+def _main_inlier_normal(xyz: np.ndarray, depth: np.ndarray, layer: Layer, sigma_k: float,
+                        outward: np.ndarray) -> tuple[np.ndarray | None, int]:
+    """PCA normal (2D, oriented like ``outward``) of the points within sigma_k σ of the layer, and their count."""
+    inl = np.abs(depth - layer.mu) <= sigma_k * max(layer.sigma, 1e-4)
+    if inl.sum() < 3:
+        return None, 0
+    normal2, _ = fit_line_2d(xyz[inl, :2])
+    if float(normal2 @ outward[:2]) < 0:
+        normal2 = -normal2
+    return normal2, int(inl.sum())
+
+
+def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, polygon, fparams: FacadeParams,
+                  params: RefineParams, campaign_id: int, seed: int = 0, tm: dict | None = None) -> Facade | None:
+    """The stored façade refined by one campaign's points ``member_ids`` (indices into ``camp``), or ``None`` when
+    the campaign does not see its main layer again (the caller keeps the stored façade). See the module doc."""
+    tm = tm if tm is not None else {}
+    clock = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    if stored.evidence is not None and stored.evidence.cell != fparams.cell:
+        fparams = dataclasses.replace(fparams, cell=stored.evidence.cell)  # the grids must stay aligned
+    cell = fparams.cell
+    frame0 = stored.frame
+    xyz = camp.xyz[member_ids]
+    std = frame0.to_facade(xyz)
+    keep = (std[:, 2] >= -fparams.layer_back) & (std[:, 2] <= fparams.layer_front)
+    if keep.sum() < fparams.min_facade_points:
+        return None
+    new_layers = layer_fit(std[keep], cell, fparams, rng, seed)  # the campaign's own Gaussians, stored depth axis
+    matches, _ = match_layers(stored.layers, stored.main_layer, new_layers, params)
+    if not matches:
+        return None
+    j_main = next(i for i, lid in matches.items() if lid == stored.main_layer)
+    main_old = stored.layer(stored.main_layer)
+    # the plane: PCA normal of the new main layer's 3σ inliers, fused with the stored one by point counts
+    normal1, n_inl = _main_inlier_normal(xyz[keep], std[keep, 2], new_layers[j_main], fparams.sigma_k, frame0.normal)
+    normal2 = frame0.normal[:2] if normal1 is None else _fuse_normal(
+        frame0.normal, main_old.n_points, normal1, n_inl, params.normal_max_angle_deg)
+    mu_main, _ = fuse_gaussians(main_old.mu, main_old.sigma, new_layers[j_main].mu, new_layers[j_main].sigma)
+    s0, s1, _, _ = stored.extent
+    s_mid = 0.5 * (s0 + s1)
+    centre = frame0.to_crs(np.array([[s_mid, 0.0, 0.0]]))[0]
+    normal3 = np.array([normal2[0], normal2[1], 0.0])
+    u1 = np.array([-normal2[1], normal2[0], 0.0])
+    frame1 = FacadeFrame(origin=centre + mu_main * normal3 - s_mid * u1, u=u1)
+    # the extent grows where the campaign's wall reaches beyond it
+    std1 = frame1.to_facade(xyz)
+    obs_layers = [dataclasses.replace(la, mu=la.mu - mu_main) for la in new_layers]
+    labels = np.full(len(std1), -1, dtype=np.int64)
+    labels[keep] = assign_layers(std1[keep, 2], obs_layers, fparams.sigma_k)
+    on_main = labels == j_main
+    extent1 = _extended_extent(stored.extent, std1[on_main, :2], cell, params)
+    tm["layers"] = tm.get("layers", 0.0) + time.perf_counter() - clock
+    obs = observe_facade(camp, frame1, extent1, fparams, campaign_id, seed=seed, polygon=polygon,
+                         member_ids=member_ids, layers=obs_layers, tm=tm)
+    if obs is None:
+        return None
+    clock = time.perf_counter()
+    counted = [dataclasses.replace(la, n_points=o.n_points) for la, o in zip(new_layers, obs.layers)]
+    layers, layer_map = _fused_layers(stored.layers, counted, matches, stored.n_points, obs.n_points, campaign_id)
+    for la in layers:
+        la.mu = 0.0 if la.layer_id == stored.main_layer else la.mu - mu_main
+    old_ev = pad_evidence(stored.evidence, obs.extent, cell)
+    old_area = _old_area(stored.evidence, obs.extent, cell)
+    seen_area = float(obs.evidence.seen.sum()) * cell * cell
+    if obs.n_points >= params.min_element_density * seen_area:
+        fused_ev = _add_evidence(old_ev, obs.evidence)
+        votes = _Votes(_Grid(fused_ev.s0, fused_ev.t0, cell, fused_ev.shape), fused_ev.window_votes,
+                       fused_ev.object_votes, fused_ev.seen, obs.evidence.seen, old_area)
+        elements = _fuse_elements(stored, obs, layer_map, votes, fparams, params, campaign_id)
+    else:  # too sparse to tell openings from sampling gaps: the plane and layers only
+        fused_ev, elements = old_ev, list(stored.elements)
+    main = next(la for la in layers if la.layer_id == stored.main_layer)
+    tm["fusion"] = tm.get("fusion", 0.0) + time.perf_counter() - clock
+    return Facade(facade_id=stored.facade_id, frame=frame1, sigma=float(main.sigma), extent=obs.extent, layers=layers,
+                  elements=elements, main_layer=stored.main_layer, n_points=stored.n_points + obs.n_points,
+                  footprint_edge=stored.footprint_edge if stored.footprint_edge is not None else obs.footprint_edge,
+                  campaigns=sorted(set(stored.campaigns) | {campaign_id}), evidence=fused_ev)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Buildings and the map
+
+
+def _s_range(f: Facade, polygon, params: RefineParams) -> tuple[float, float]:
+    """Where along the wall new points may still belong to façade ``f``: its extent +- ``extend_margin``, widened to
+    its footprint edge."""
+    lo, hi = f.extent[0] - params.extend_margin, f.extent[1] + params.extend_margin
+    if f.footprint_edge is not None and polygon is not None:
+        edges = footprint_edges(polygon)
+        if 0 <= f.footprint_edge < len(edges):
+            ends = f.frame.to_facade(np.column_stack([edges[f.footprint_edge], np.zeros(2)]))[:, 0]
+            lo, hi = min(lo, float(ends.min())), max(hi, float(ends.max()))
+    return lo, hi
+
+
+def assign_to_facades(facades: list[Facade], xyz: np.ndarray, polygon, params: RefineParams) -> np.ndarray:
+    """Index (into ``facades``) of the façade each point belongs to: within ``association_distance`` of its main
+    plane and within its range along the wall (:func:`_s_range`), the nearest plane winning; -1 for none."""
+    best = np.full(len(xyz), -1, dtype=np.int64)
+    best_d = np.full(len(xyz), np.inf)
+    for k, f in enumerate(facades):
+        std = f.frame.to_facade(xyz)
+        lo, hi = _s_range(f, polygon, params)
+        dist = np.abs(std[:, 2])
+        ok = (dist <= params.association_distance) & (std[:, 0] >= lo) & (std[:, 0] <= hi) & (dist < best_d)
+        best[ok] = k
+        best_d[ok] = dist[ok]
+    return best
+
+
+def _refine_building(stored: Building, camp: CampaignData, ids: np.ndarray, fparams: FacadeParams,
+                     params: RefineParams, campaign_id: int, seed: int, rng: np.random.Generator,
+                     tm: dict) -> Building:
+    """A stored building after one campaign: its façades refined, new façades from the points none of them took."""
+    polygon = stored.footprint
+    owner = assign_to_facades(stored.facades, camp.xyz[ids], polygon, params)
+    facades: list[Facade] = []
+    for k, f in enumerate(stored.facades):
+        members = ids[owner == k]
+        refined = None
+        if campaign_id not in f.campaigns and len(members) >= fparams.min_facade_points:
+            refined = refine_facade(f, camp, members, polygon, fparams, params, campaign_id,
+                                    seed * 31 + int(f.facade_id), tm)
+        facades.append(refined if refined is not None else f)
+    rest = ids[owner < 0]
+    if len(rest) >= fparams.min_facade_points and not any(campaign_id in f.campaigns for f in stored.facades):
+        clock = time.perf_counter()
+        found = building_facades(camp, rest, polygon, fparams, campaign_id, seed, rng, tm)
+        next_id = max((f.facade_id for f in stored.facades), default=-1) + 1
+        for f in found:
+            f.facade_id = next_id
+            next_id += 1
+            facades.append(f)
+        tm["new_facades"] = tm.get("new_facades", 0.0) + time.perf_counter() - clock
+    return dataclasses.replace(stored, facades=facades)
+
+
+def _campaign_applied(stored: BuildingMap, campaign_id: int) -> bool:
+    return any(c.campaign_id == campaign_id for c in stored.campaigns)
+
+
+def refine_map(stored: BuildingMap, points: PointCloud, trajectory: Trajectory, footprints: Footprints,
+               facade_params: FacadeParams, params: RefineParams, campaign_id: int, seed: int = 0,
+               timings: dict | None = None) -> BuildingMap:
+    """The map after one more mobile campaign (see the module doc); ``stored`` is not modified.
+
+    Buildings are matched to footprints by id; a building the map does not hold yet is extracted from the campaign
+    (§2.2-2.4). Re-applying a campaign id the map already lists (or a façade already holds) changes nothing.
+    ``timings`` (a dict) receives seconds per step.
+    """
+    tm = timings if timings is not None else {}
+    new_map = copy.deepcopy(stored)
+    if _campaign_applied(stored, campaign_id):
+        return new_map
+    if not stored.buildings:
+        buildings = extract_buildings(points, trajectory, footprints, facade_params, campaign_id, seed, tm)
+        new_map.buildings = {b.building_id: b for b in buildings}
+        return new_map
+    check_same_crs(points, footprints)
+    camp = prepare_campaign(points, trajectory, facade_params, seed, tm)
+    clock = time.perf_counter()
+    joined = join_campaign(camp, footprints, facade_params)
+    tm["join"] = time.perf_counter() - clock
+    rng = np.random.default_rng(seed)
+    for b, ids in joined.items():
+        bid = str(footprints.ids[b])  # the map's (and the store's) building ids are strings
+        if bid in new_map.buildings:
+            new_map.buildings[bid] = _refine_building(new_map.buildings[bid], camp, ids, facade_params, params,
+                                                      campaign_id, seed + int(b), rng, tm)
+            continue
+        polygon = footprints.polygons[b]
+        facades = building_facades(camp, ids, polygon, facade_params, campaign_id, seed + int(b), rng, tm)
+        if facades:
+            new_map.buildings[bid] = Building(building_id=bid, footprint=polygon,
+                                              attributes=dict(footprints.properties[b]), facades=facades)
+    return new_map
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Roofs from aerial data
+
+
+def _roof_candidates(xyz: np.ndarray, x_order: np.ndarray, classification: np.ndarray | None, ground: np.ndarray,
+                     polygon, params: RefineParams) -> np.ndarray:
+    """Indices of aerial points that may lie on a building's roof: inside the footprint (+ ``roof_buffer``), not
+    ground or vegetation (ASPRS 2-5), at least ``roof_min_height`` above the ground around the footprint (10th
+    percentile of the ground points within ``roof_ground_ring``). ``x_order`` sorts the points by x."""
+    area = polygon.buffer(params.roof_buffer)
+    ring = params.roof_ground_ring
+    x0, y0, x1, y1 = area.bounds
+    lo, hi = np.searchsorted(xyz[x_order, 0], [x0 - ring, x1 + ring])
+    near = x_order[lo:hi]
+    near = near[(xyz[near, 1] >= y0 - ring) & (xyz[near, 1] <= y1 + ring)]
+    inside = near[shapely.contains_xy(area, xyz[near, 0], xyz[near, 1])]
+    if classification is not None:
+        inside = inside[(classification[inside] < 2) | (classification[inside] > 5)]
+    around = near[ground[near]]
+    base = float(np.quantile(xyz[around, 2], 0.1)) if len(around) else (
+        float(xyz[inside, 2].min()) if len(inside) else 0.0)
+    return np.sort(inside[xyz[inside, 2] - base >= params.roof_min_height])
+
+
+def roof_planes(xyz: np.ndarray, polygon, params: RefineParams, campaign_id: int, seed: int = 0) -> list[RoofPlane]:
+    """Roof planes of one building from its aerial roof points (CRS): the aerial pipeline's plane detector
+    (:func:`lidarmap.flatten.detect_planes`), planes steeper than ``roof_max_slope_deg`` (walls) or with fewer than
+    ``roof_min_points`` inliers dropped; normals point up; outline = concave hull of the inliers (xy) within the
+    footprint (+ ``roof_buffer``); σ = the inliers' RMS distance to the plane."""
+    from lidarmap.flatten import FlattenParams, detect_planes
+    from lidarmap.facade_layers import outline_polygon
+
+    if len(xyz) < params.roof_min_points:
+        return []
+    area = polygon.buffer(params.roof_buffer)
+    roofs: list[RoofPlane] = []
+    for plane in detect_planes(xyz, FlattenParams(), seed):
+        normal = np.asarray(plane.normal, dtype=np.float64)
+        offset = float(plane.offset)
+        if normal[2] < 0:
+            normal, offset = -normal, -offset
+        if len(plane.inliers) < params.roof_min_points or \
+                math.degrees(math.acos(min(1.0, normal[2]))) > params.roof_max_slope_deg:
+            continue
+        outline = outline_polygon(xyz[plane.inliers, :2], params.roof_outline_cell, params.roof_concave_ratio)
+        outline = outline.intersection(area) if outline is not None else None
+        if outline is None or outline.is_empty:
+            continue
+        if outline.geom_type != "Polygon":
+            outline = max(getattr(outline, "geoms", [outline]), key=lambda g: g.area)
+            if outline.geom_type != "Polygon":
+                continue
+        roofs.append(RoofPlane(plane_id=len(roofs), normal=normal, offset=offset, outline=outline,
+                               sigma=float(plane.rms), n_points=int(len(plane.inliers)), campaigns=[campaign_id]))
+    return roofs
+
+
+def _height_at(roof: RoofPlane, xy: np.ndarray) -> float:
+    n = np.asarray(roof.normal, dtype=np.float64)
+    return float(-(n[0] * xy[0] + n[1] * xy[1] + roof.offset) / n[2])
+
+
+def _roof_matches(a: RoofPlane, b: RoofPlane, params: RefineParams) -> bool:
+    """Same roof plane: normals within ``roof_match_angle_deg``, planes within ``roof_match_distance`` (vertically,
+    at the middle of the new outline) and overlapping outlines."""
+    cos = float(np.dot(a.normal, b.normal)) / (np.linalg.norm(a.normal) * np.linalg.norm(b.normal))
+    if cos < math.cos(math.radians(params.roof_match_angle_deg)) or not a.outline.intersects(b.outline):
+        return False
+    c = np.asarray(b.outline.representative_point().coords[0])
+    return abs(_height_at(a, c) - _height_at(b, c)) <= params.roof_match_distance
+
+
+def _fused_roof(old: RoofPlane, new: RoofPlane, campaign_id: int) -> RoofPlane:
+    """Two observations of one roof plane: normal weighted by point counts, height at the outline's middle fused by
+    eq. (4)-(7) (σ = the planes' RMS), outlines united, counts added."""
+    c = np.asarray(old.outline.union(new.outline).representative_point().coords[0])
+    z, sigma = fuse_gaussians(_height_at(old, c), old.sigma, _height_at(new, c), new.sigma)
+    n = old.n_points * np.asarray(old.normal, dtype=np.float64) + new.n_points * np.asarray(new.normal)
+    n /= np.linalg.norm(n)
+    outline = old.outline.union(new.outline)
+    if outline.geom_type != "Polygon":
+        outline = max(getattr(outline, "geoms", [outline]), key=lambda g: g.area)
+    return RoofPlane(plane_id=old.plane_id, normal=n, offset=float(-(n[0] * c[0] + n[1] * c[1] + n[2] * z)),
+                     outline=outline, sigma=sigma, n_points=old.n_points + new.n_points,
+                     campaigns=sorted(set(old.campaigns) | {campaign_id}))
+
+
+def fuse_roofs(stored: list[RoofPlane], new: list[RoofPlane], params: RefineParams,
+               campaign_id: int) -> list[RoofPlane]:
+    """A building's roof planes after an aerial campaign: each new plane fuses with the first matching stored one
+    (:func:`_roof_matches`, most points first) or is added with a fresh ``plane_id``."""
+    out = list(stored)
+    next_id = max((r.plane_id for r in stored), default=-1) + 1
+    used: set[int] = set()
+    for r in sorted(new, key=lambda r: -r.n_points):
+        k = next((i for i, old in enumerate(out) if i not in used and old.plane_id in {o.plane_id for o in stored}
+                  and _roof_matches(old, r, params)), None)
+        if k is None:
+            out.append(dataclasses.replace(r, plane_id=next_id))
+            used.add(len(out) - 1)
+            next_id += 1
+        else:
+            out[k] = _fused_roof(out[k], r, campaign_id)
+            used.add(k)
+    return sorted(out, key=lambda r: r.plane_id)
+
+
+def add_aerial(stored: BuildingMap, cloud: PointCloud, footprints: Footprints, params: RefineParams,
+               campaign_id: int, seed: int = 0) -> BuildingMap:
+    """The map with roof planes from an aerial scan added to its buildings (a new copy; ``stored`` untouched).
+
+    Per footprint: the aerial points inside it and above the ground (:func:`_roof_candidates`), roof planes by the
+    aerial pipeline's detector (:func:`roof_planes`), fused with the building's stored roofs (:func:`fuse_roofs`).
+    Buildings the map does not hold yet are added with roofs only. Re-applying a campaign id the map (or a
+    building's roofs) already lists changes nothing.
+    """
+    from lidarmap.facade_planes import ground_mask
+
+    new_map = copy.deepcopy(stored)
+    if _campaign_applied(stored, campaign_id):
+        return new_map
+    check_same_crs(cloud, footprints)
+    xyz = cloud.xyz
+    classification = cloud.attrs.get("classification")
+    ground = ground_mask(xyz, classification, FacadeParams())
+    x_order = np.argsort(xyz[:, 0], kind="stable")
+    for b, (fid, polygon) in enumerate(zip(footprints.ids, footprints.polygons)):
+        bid = str(fid)
+        building = new_map.buildings.get(bid)
+        if building is not None and any(campaign_id in r.campaigns for r in building.roofs):
+            continue
+        ids = _roof_candidates(xyz, x_order, classification, ground, polygon, params)
+        roofs = roof_planes(xyz[ids], polygon, params, campaign_id, seed + b)
+        if not roofs:
+            continue
+        if building is None:
+            new_map.buildings[bid] = Building(building_id=bid, footprint=polygon,
+                                              attributes=dict(footprints.properties[b]), roofs=roofs)
+        else:
+            building.roofs = fuse_roofs(building.roofs, roofs, params, campaign_id)
+    return new_map

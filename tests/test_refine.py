@@ -1,0 +1,332 @@
+"""Incremental refinement (lidarmap.refine, paper §2.5): eq. (4)-(7), the vote-map refit, campaigns fused into a map.
+
+Two scenes: the synthetic façade of tests/test_facade.py (a van hides a ground-floor window in campaign 1 and has
+left in campaign 2), and a small simulated city (2 buildings, 3 campaigns differing in lane, parked cars and
+misregistration, plus the aerial scan) scored against the simulator's truth.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+from shapely.geometry import box
+
+from lidarmap.facade import FacadeParams, window_uncertainty_eq3
+from lidarmap.facade_windows import HOLE, OBJECT, OCCLUDED
+from lidarmap.model import BuildingMap, Campaign, Element, ElementKind, Layer
+from lidarmap.refine import (RefineParams, add_aerial, fuse_gaussians, match_layers, refine_map, refit_rectangle,
+                             weighted_window_uncertainty)
+from test_facade import CRS_UTM, _facade_rect, _iou, make_scene
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Eq. (4)-(7)
+
+
+def test_fuse_gaussians_is_the_normalised_product_eq_4_7():
+    mu0, s0, mu1, s1 = 0.012, 0.010, -0.004, 0.006
+    mu, s = fuse_gaussians(mu0, s0, mu1, s1)
+    k = s0 ** 2 / (s0 ** 2 + s1 ** 2)  # eq. (5)
+    assert mu == pytest.approx(mu0 + k * (mu1 - mu0), abs=1e-15)  # eq. (6)
+    assert s ** 2 == pytest.approx(s0 ** 2 - k * s0 ** 2, abs=1e-18)  # eq. (7)
+    # eq. (4): the product of the two densities, normalised, is that Gaussian (moments by numerical integration)
+    x = np.linspace(-0.1, 0.1, 400001)
+    prod = norm.pdf(x, mu0, s0) * norm.pdf(x, mu1, s1)
+    prod /= np.trapezoid(prod, x)
+    m = np.trapezoid(x * prod, x)
+    assert m == pytest.approx(mu, abs=1e-9)
+    assert math.sqrt(np.trapezoid((x - m) ** 2 * prod, x)) == pytest.approx(s, rel=1e-6)
+    assert fuse_gaussians(mu1, s1, mu0, s0) == pytest.approx((mu, s))  # the product commutes
+    # n equal-quality campaigns: sigma / sqrt(n)
+    mu_n, s_n = 0.0, 0.01
+    for n in range(2, 6):
+        mu_n, s_n = fuse_gaussians(mu_n, s_n, 0.0, 0.01)
+        assert s_n == pytest.approx(0.01 / math.sqrt(n), rel=1e-12)
+
+
+def test_match_layers_removes_the_main_shift_and_appends_unmatched():
+    stored = [Layer(0, -0.30, 0.004, 0.1, 100), Layer(1, 0.0, 0.005, 0.8, 800), Layer(2, 0.50, 0.006, 0.1, 100)]
+    # the new campaign is misregistered by +3 cm along the normal; it sees a new layer at +1.0 and no door leaf
+    new = [Layer(0, 0.03, 0.01, 0.7, 700), Layer(1, 0.535, 0.008, 0.2, 200), Layer(2, 1.03, 0.01, 0.1, 100)]
+    matches, shift = match_layers(stored, 1, new, RefineParams())
+    assert shift == pytest.approx(0.03) and matches == {0: 1, 1: 2}
+    assert match_layers(stored, 1, [Layer(0, 0.9, 0.01, 1.0, 10)], RefineParams()) == ({}, pytest.approx(math.nan,
+                                                                                                         nan_ok=True))
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Weighted eq. (3) and the vote-map refit
+
+
+def _campaign_votes(hole: tuple[int, int, int, int], shape=(10, 10), occluded=None):
+    """(window votes, object votes) of one campaign: a hole rectangle (r0, r1, c0, c1), wall elsewhere."""
+    values = np.full(shape, OBJECT)
+    r0, r1, c0, c1 = hole
+    values[r0:r1, c0:c1] = HOLE
+    if occluded is not None:
+        values[occluded] = OCCLUDED
+    return (values == HOLE).astype(int), (values == OBJECT).astype(int), values
+
+
+def test_weighted_eq3_is_eq3_for_one_unoccluded_campaign():
+    w, o, values = _campaign_votes((2, 7, 2, 6))
+    for rect in [(2, 7, 2, 6), (1, 7, 2, 6), (2, 6, 3, 6), (0, 10, 0, 10), (3, 5, 3, 4)]:
+        assert weighted_window_uncertainty(w, o, rect) == pytest.approx(window_uncertainty_eq3(values, rect))
+
+
+def test_vote_map_refit_hand_case():
+    # campaigns A and C see a window in rows 2-6, cols 2-5; campaign B, misregistered by one cell, sees cols 3-6 and
+    # has column 4 hidden by a pole. Net weights per window column: col 2: 2-1 = 1, col 3: 3, col 4: 2 (B did not
+    # see it), col 5: 3; col 6: object 2-1 = 1; the wall around: object 3.
+    a_w, a_o, _ = _campaign_votes((2, 7, 2, 6))
+    b_w, b_o, _ = _campaign_votes((2, 7, 3, 7), occluded=(slice(None), 4))
+    w, o = 2 * a_w + b_w, 2 * a_o + b_o
+    n_hole = 5 * (1 + 3 + 2 + 3)
+    assert n_hole == 45
+    # B's own rectangle: misses column 2 (5 cells of weight 1) and holds column 6 (5 cells of object weight 1, twice)
+    assert weighted_window_uncertainty(w, o, (2, 7, 3, 7)) == pytest.approx((5 + 2 * 5) / 45)
+    # candidate lines from both shapes (+- 1 cell): the fused rectangle is A's, with eps 0; B's right edge is voted out
+    rect, eps = refit_rectangle(w, o, col_lines=[1, 2, 3, 5, 6, 7, 2, 3, 4, 6, 7, 8], row_lines=[1, 2, 3, 6, 7, 8])
+    assert rect == (2, 7, 2, 6) and eps == 0.0
+    # only B's lines available: the best is B's rows with cols 3..6 (loses column 2 but not more)
+    rect_b, eps_b = refit_rectangle(w, o, col_lines=[3, 7, 6], row_lines=[2, 7])
+    assert rect_b == (2, 7, 3, 6) and eps_b == pytest.approx(5 / 45)
+    assert refit_rectangle(np.zeros((4, 4), int), np.ones((4, 4), int), [0, 4], [0, 4]) == (None, math.inf)
+
+
+def test_window_split_by_an_old_occlusion_merges_and_its_unknown_gap_goes():
+    from lidarmap.refine import _fuse_openings, _fuse_unknown, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (20, 30))
+    full, left, right, pole = box(0.5, 0.5, 1.7, 1.5), box(0.5, 0.5, 1.0, 1.5), box(1.2, 0.5, 1.7, 1.5), \
+        box(1.0, 0.5, 1.2, 1.5)
+    # campaign 1: a pole hid the window's middle (neither window nor wall there); campaign 2 saw it whole
+    w1 = grid.raster(left) | grid.raster(right)
+    o1 = ~w1 & ~grid.raster(pole)
+    w2 = grid.raster(full)
+    votes = _Votes(grid, (w1.astype(int) + w2), (o1.astype(int) + ~w2), (w1 | o1).astype(int) + 1,
+                   np.ones(grid.shape, int), np.ones(grid.shape, bool))
+    stored = [Element(3, ElementKind.WINDOW, left, None, 0.0, campaigns=[1]),
+              Element(5, ElementKind.WINDOW, right, None, 0.0, campaigns=[1])]
+    new = [Element(0, ElementKind.WINDOW, full, None, 0.0, campaigns=[2])]
+    ids = _Ids(stored + [Element(7, ElementKind.UNKNOWN, pole, None, math.inf, campaigns=[1])])
+    merged, changed = _fuse_openings(stored, new, votes, ids, RefineParams(), (0.0, 3.0, 0.0, 2.0))
+    assert len(merged) == 1 and merged[0].element_id == 3 and changed == {3}
+    assert merged[0].polygon.equals_exact(full, 1e-9) and merged[0].uncertainty == 0.0
+    assert merged[0].campaigns == [1, 2]
+    unknown = _fuse_unknown([Element(7, ElementKind.UNKNOWN, pole, None, math.inf, campaigns=[1])], [], merged,
+                            changed, votes, ids, campaign_id=2, min_cells=1)
+    assert unknown == []
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# The synthetic façade: a window hidden by a van in campaign 1, seen in campaign 2
+
+
+@pytest.fixture(scope="module")
+def synthetic_maps():
+    first = make_scene()
+    second = make_scene(van=False, step=0.07, seed=5)
+    empty = BuildingMap(crs_wkt=CRS_UTM.to_wkt())
+    m1 = refine_map(empty, *first[:3], FacadeParams(), RefineParams(), campaign_id=1)
+    m2 = refine_map(m1, *second[:3], FacadeParams(), RefineParams(), campaign_id=2)
+    return first, second, m1, m2
+
+
+def _openings(facade):
+    return {e.element_id: e for e in facade.elements if e.kind in (ElementKind.WINDOW, ElementKind.DOOR)}
+
+
+def test_hidden_window_appears_with_finite_uncertainty(synthetic_maps):
+    first, _, m1, m2 = synthetic_maps
+    f1, f2 = m1.buildings["B1"].facades[0], m2.buildings["B1"].facades[0]
+    hidden = _facade_rect(f2.frame, first[3]["hidden_windows"][0])
+    assert not any(_iou(e.polygon, hidden) > 0.1 for e in _openings(f1).values())
+    found = [e for e in _openings(f2).values() if _iou(e.polygon, hidden) > 0.8]
+    assert len(found) == 1 and found[0].kind is ElementKind.WINDOW and found[0].campaigns == [2]
+    assert math.isfinite(found[0].uncertainty) and 0.0 <= found[0].uncertainty < 0.2
+    assert found[0].element_id not in _openings(f1)  # a fresh id
+    # the van's shadow was unknown after campaign 1 and is resolved now
+    shadow = _facade_rect(f2.frame, first[3]["van_shadow"])
+    unknown_over = [sum(e.polygon.intersection(shadow).area for e in f.elements if e.is_unknown) for f in (f1, f2)]
+    assert unknown_over[0] > 0.7 * shadow.area and unknown_over[1] < 0.05 * shadow.area
+    # windows seen by both campaigns kept their ids and now list both campaigns
+    both = [i for i, e in _openings(f2).items() if e.campaigns == [1, 2]]
+    assert sorted(both) == sorted(_openings(f1)) and len(both) >= 14
+
+
+def test_refined_layers_and_plane(synthetic_maps):
+    first, _, m1, m2 = synthetic_maps
+    f1, f2 = m1.buildings["B1"].facades[0], m2.buildings["B1"].facades[0]
+    main1, main2 = f1.layer(f1.main_layer), f2.layer(f2.main_layer)
+    assert main2.mu == 0.0 and main2.campaigns == [1, 2]
+    assert main2.sigma < main1.sigma and f2.sigma == main2.sigma  # eq. (7): the fused layer is sharper
+    door1 = min(f1.layers, key=lambda la: la.mu)
+    door2 = f2.layer(door1.layer_id)
+    assert door2.campaigns == [1, 2] and door2.mu == pytest.approx(-0.3, abs=0.01)  # same id, fused
+    offset = abs(float(f2.frame.normal @ (first[3]["wall_point"] - f2.frame.origin)))
+    assert offset < 0.01 and float(f2.frame.normal @ first[3]["wall_normal"]) > math.cos(math.radians(0.2))
+    assert f2.evidence.seen.max() == 2 and f2.n_points > f1.n_points
+    assert m2.buildings["B1"].facades[0].facade_id == f1.facade_id
+
+
+def test_repeated_campaign_is_not_double_counted(synthetic_maps):
+    _, second, m1, m2 = synthetic_maps
+    again = refine_map(m2, *second[:3], FacadeParams(), RefineParams(), campaign_id=2)
+    f2, f3 = m2.buildings["B1"].facades[0], again.buildings["B1"].facades[0]
+    assert f3.campaigns == [1, 2] and f3.n_points == f2.n_points
+    assert np.array_equal(f3.evidence.window_votes, f2.evidence.window_votes)
+    assert [(la.layer_id, la.mu, la.sigma) for la in f3.layers] == [(la.layer_id, la.mu, la.sigma) for la in f2.layers]
+    # the map listing the campaign: a no-op, and a new copy (the stored map is never modified)
+    listed = dataclasses.replace(m2, campaigns=[Campaign(2, "mobile", "b.laz", "f2", 1, "2026-01-02")])
+    same = refine_map(listed, *second[:3], FacadeParams(), RefineParams(), campaign_id=2)
+    assert same is not listed and same.buildings["B1"].facades[0].n_points == f2.n_points
+    assert m1.buildings["B1"].facades[0].campaigns == [1]  # untouched by the refinement that produced m2
+
+
+def test_refinement_is_deterministic(synthetic_maps):
+    _, second, m1, m2 = synthetic_maps
+    again = refine_map(m1, *second[:3], FacadeParams(), RefineParams(), campaign_id=2)
+    a, b = m2.buildings["B1"].facades[0], again.buildings["B1"].facades[0]
+    assert np.array_equal(a.frame.origin, b.frame.origin) and np.array_equal(a.frame.u, b.frame.u)
+    assert [(e.element_id, e.kind, e.polygon.wkb, e.uncertainty) for e in a.elements] == \
+        [(e.element_id, e.kind, e.polygon.wkb, e.uncertainty) for e in b.elements]
+    for name in ("window_votes", "object_votes", "seen"):
+        assert np.array_equal(getattr(a.evidence, name), getattr(b.evidence, name))
+
+
+def test_as_of_reproduces_the_earlier_export_exactly(synthetic_maps, tmp_path):
+    from lidarmap.export.cityjson import map_to_cityjson
+    from lidarmap.store import MapStore
+
+    _, _, m1, m2 = synthetic_maps
+    store = MapStore.create(tmp_path / "city.lmap", CRS_UTM.to_wkt())
+    try:
+        applied: list[Campaign] = []
+        for cid, m in ((1, m1), (2, m2)):
+            applied.append(Campaign(cid, "mobile", f"mls_{cid}.laz", f"fp{cid}", 1000, f"2026-01-0{cid}"))
+            changes = store.commit(dataclasses.replace(m, campaigns=list(applied)), applied[-1])
+        assert changes["elements"]["added"] >= 1 and changes["elements"]["updated"] >= 14
+        exported = {cid: json.dumps(map_to_cityjson(dataclasses.replace(m, campaigns=[])), sort_keys=True)
+                    for cid, m in ((1, m1), (2, m2))}
+        for cid in (1, 2):
+            loaded = dataclasses.replace(store.load(as_of=cid), campaigns=[])
+            assert json.dumps(map_to_cityjson(loaded), sort_keys=True) == exported[cid]
+        assert exported[1] != exported[2]
+    finally:
+        store.close()
+
+
+def test_layer_conflict_goes_to_the_lower_uncertainty():
+    from lidarmap.refine import _resolve_layer_conflicts
+
+    balcony = Element(1, ElementKind.STRUCTURE, box(0, 0, 2, 1), layer_id=3, uncertainty=0.05, campaigns=[1, 2])
+    clutter = Element(2, ElementKind.STRUCTURE, box(1.5, 0, 3, 1), layer_id=4, uncertainty=0.6, campaigns=[2])
+    out = {e.element_id: e for e in _resolve_layer_conflicts([balcony, clutter], {2}, RefineParams(), 0.1)}
+    assert out[1].polygon.equals(balcony.polygon)
+    assert out[2].polygon.area == pytest.approx(1.0) and out[2].polygon.bounds[0] == pytest.approx(2.0)
+    swallowed = Element(3, ElementKind.STRUCTURE, box(0.5, 0.2, 1.0, 0.6), layer_id=4, uncertainty=0.9)
+    assert 3 not in {e.element_id for e in _resolve_layer_conflicts([balcony, swallowed], {3}, RefineParams(), 0.1)}
+
+
+def test_params_section_and_validation():
+    from lidarmap.config import resolve
+    from lidarmap.errors import ConfigError
+
+    assert RefineParams.section == "refine"
+    assert resolve(RefineParams, {"refine": {"iou_threshold": 0.5}}).iou_threshold == 0.5
+    with pytest.raises(ConfigError):
+        resolve(RefineParams, {"refine": {"iou_threshold": 1.5}})
+    with pytest.raises(ConfigError):
+        resolve(RefineParams, {"refine": {"association_distance": 0}})
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# A small simulated city: three campaigns, then the aerial scan
+
+
+@pytest.fixture(scope="module")
+def sim_city(tmp_path_factory):
+    from lidarmap.io.footprints import read_footprints
+    from lidarmap.io.las import read_las
+    from lidarmap.io.trajectory import read_trajectory
+    from lidarmap.sim import SimParams, load_truth, simulate
+
+    out = tmp_path_factory.mktemp("refine_sim")
+    simulate(out, SimParams(seed=3, buildings=2, campaigns=3))
+    truth = load_truth(out)
+    maps = []
+    m = BuildingMap(crs_wkt=truth.crs.to_wkt())
+    for camp in truth.campaigns:
+        cloud = read_las(camp.laz)
+        fps = read_footprints(out / "footprints.geojson", crs=cloud.crs)
+        m = refine_map(m, cloud, read_trajectory(camp.trajectory), fps, FacadeParams(), RefineParams(), camp.id)
+        maps.append(m)
+    return out, truth, fps, maps
+
+
+def test_simulated_campaigns_refine_the_map(sim_city):
+    from lidarmap.facade_eval import evaluate_facades, map_statistics
+
+    _, truth, _, maps = sim_city
+    f1 = []
+    for k, m in enumerate(maps, start=1):
+        scored = evaluate_facades(list(m.buildings.values()), truth, k, campaigns=list(range(1, k + 1)))
+        f1.append(scored["window"]["f1"])
+        assert scored["window"]["tp"] >= 10 and scored["offset_max"] < 0.05
+    stats = [map_statistics(list(m.buildings.values())) for m in maps]
+    print(f"\nrefined sim: window F1 {f1}, unknown m² {[round(s['unknown_area'], 1) for s in stats]}, "
+          f"sigma mm {[round(1000 * s['sigma_mean'], 2) for s in stats]}")
+    assert f1[-1] >= 0.9 and all(b >= a for a, b in zip(f1, f1[1:]))
+    assert stats[-1]["campaigns_per_facade"] > 2.0
+
+    def per_facade(m, what):
+        return {(b, f.facade_id): what(f) for b, B in m.buildings.items() for f in B.facades}
+
+    def unknown(f):
+        return sum(e.polygon.area for e in f.elements if e.is_unknown)
+
+    for before, after in zip(maps, maps[1:]):  # on the façades the map held before (new ones add new territory)
+        u0, u1 = per_facade(before, unknown), per_facade(after, unknown)
+        assert all(u1[k] <= u0[k] + 1e-9 for k in u0) and sum(u1[k] for k in u0) < sum(u0.values())
+        s0, s1 = per_facade(before, lambda f: f.sigma), per_facade(after, lambda f: f.sigma)
+        assert all(s1[k] <= s0[k] for k in s0) and sum(s1[k] < s0[k] for k in s0) >= len(s0) - 1
+    # ids are stable: the windows of campaign 1 are (nearly all) still there under their ids
+    first = {(b, f.facade_id, e.element_id) for b, B in maps[0].buildings.items() for f in B.facades
+             for e in f.elements if e.kind is ElementKind.WINDOW}
+    last = {(b, f.facade_id, e.element_id) for b, B in maps[-1].buildings.items() for f in B.facades
+            for e in f.elements if e.kind is ElementKind.WINDOW}
+    assert len(first & last) >= 0.9 * len(first)
+
+
+def test_aerial_roofs_fused_into_the_buildings(sim_city):
+    from lidarmap.io.las import read_las
+
+    out, truth, fps, maps = sim_city
+    als = read_las(truth.als)
+    half = np.random.default_rng(0).random(len(als)) < 0.5
+    first = add_aerial(maps[-1], als.subset(half), fps, RefineParams(), campaign_id=10)
+    second = add_aerial(first, als.subset(~half), fps, RefineParams(), campaign_id=11)
+    expected = {"flat": 1, "gabled": 2, "hipped": 4}
+    for tb in truth.buildings:
+        if tb.roof_type not in expected:
+            continue
+        b1, b2 = first.buildings[str(tb.id)], second.buildings[str(tb.id)]
+        assert b2.facades and len(b2.facades) == len(maps[-1].buildings[str(tb.id)].facades)  # same building
+        assert len(b1.roofs) == len(b2.roofs) == expected[tb.roof_type], tb.roof_type
+        for r1, r2 in zip(b1.roofs, b2.roofs):
+            assert r1.plane_id == r2.plane_id and r2.campaigns == [10, 11] and r2.n_points > r1.n_points
+            assert r2.sigma < r1.sigma
+            c = np.asarray(r2.outline.representative_point().coords[0])
+            z = -(r2.normal[0] * c[0] + r2.normal[1] * c[1] + r2.offset) / r2.normal[2]
+            assert tb.eave_z - 0.05 <= z <= tb.top_z + 0.05
+            if tb.roof_type == "flat":
+                assert r2.normal[2] > math.cos(math.radians(0.5)) and abs(z - tb.top_z) < 0.03
+                assert r2.outline.intersection(tb.polygon).area > 0.95 * tb.polygon.area
+    again = add_aerial(second, als.subset(~half), fps, RefineParams(), campaign_id=11)
+    assert all(r.n_points == s.n_points for b in second.buildings for r, s in
+               zip(second.buildings[b].roofs, again.buildings[b].roofs))
