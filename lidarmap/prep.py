@@ -1,0 +1,861 @@
+"""Preprocessing (paper §3.1): LiDAR tiles + building footprints -> one point set per building.
+
+Tiles are merged while streaming them chunk by chunk, so a building cut by a tile border comes out whole. Every point
+within ``buffer`` of a footprint is assigned to exactly one building, the nearest footprint (distance 0 inside; ties go
+to the footprint that comes first in the footprint file). Footprints whose status marks them as under construction are
+dropped together with their points, and so are buildings lower than ``min_height``. Colour is quantised to 8 bits and a
+:class:`~lidarmap.frame.LocalFrame` is chosen for the downstream float32 stages.
+
+Stage API (arrays and small dataclasses, no files)::
+
+    assign_points(xy, footprints, buffer) -> (building index, -1 = none; distance to that footprint)
+    split_buildings(cloud, footprints, params) -> list[BuildingPoints]
+    prep_cloud(cloud, footprints, params) -> PrepResult
+
+Streaming driver and output (the only functions here that touch files)::
+
+    scan_tiles(paths, crs=None) -> TileSet                  # headers only: CRS agreement, bounds, point counts
+    prep_tiles(paths, footprints, params, crs=None) -> PrepResult
+    write_prep(out_dir, result) -> Path                     # buildings/<id>.laz, buildings.csv, frame.json, prep.json
+    read_prep_index(out_dir) -> list[dict]
+
+Memory of :func:`prep_tiles`: one chunk of input (``chunk_points``) plus the kept points (those within ``buffer`` of a
+non-excluded footprint, all attributes, about 60-80 bytes each) plus the ground points near footprints (one float per
+(point, footprint) pair). It does not grow with the number of points that lie away from the footprints.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import math
+import os
+import re
+import shutil
+import tempfile
+import time
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import shapely
+from pyproj import CRS
+from shapely.geometry.base import BaseGeometry
+
+from lidarmap.errors import ConfigError, CRSError, InputError
+from lidarmap.frame import LocalFrame
+from lidarmap.io.atomic import write_text_atomic
+from lidarmap.io.crs import describe_crs, same_crs
+from lidarmap.io.footprints import Footprints, check_overlap
+from lidarmap.io.las import iter_las, read_header, resolve_crs, write_las
+from lidarmap.io.pointcloud import PointCloud
+
+__all__ = [
+    "PrepParams", "BuildingPoints", "PrepResult", "TileSet", "FootprintIndex", "DEFAULT_EXCLUDED_STATUSES",
+    "assign_points", "split_buildings", "prep_cloud", "scan_tiles", "prep_tiles", "write_prep", "read_prep_index",
+    "check_out_dir", "building_file_name",
+]
+
+#: Status values (compared case-insensitively, whitespace collapsed) that mark a footprint as not built yet.
+DEFAULT_EXCLUDED_STATUSES: tuple[str, ...] = (
+    "under construction", "construction", "in construction", "planned", "proposed",
+    "in aanbouw", "bouw gestart", "bouwvergunning verleend", "plan",          # Dutch BAG / BGT
+    "en construction", "en cours de construction", "en projet",               # French
+    "im bau", "in bau", "geplant",                                            # German
+)
+
+#: Name of the extra dimension holding each point's distance to its footprint (0 inside).
+DISTANCE_DIM = "footprint_distance"
+
+
+@dataclasses.dataclass(frozen=True)
+class PrepParams:
+    """Parameters of ``lidarmap prep`` (``[prep]`` table of a config file).
+
+    Selection
+        buffer (5.0): keep points within this horizontal distance (CRS units, metres) of a footprint (paper: 5 m).
+        id_field ("id"): footprint property that holds the building id (then the GeoJSON feature ``id``, then the
+            feature's index). Used when the footprints are read (the CLI's ``--id-field``).
+        status_field ("status"): footprint property that holds the construction status.
+        excluded_statuses (:data:`DEFAULT_EXCLUDED_STATUSES`): status values whose footprints are dropped with their
+            points ("under construction", "in aanbouw", "bouw gestart", ...); compared case-insensitively with
+            whitespace collapsed, whole value only.
+    Height
+        min_height (3.0): buildings lower than this (metres) are dropped with their points (paper: 3 m); 0 keeps all.
+        height_field ("height"): footprint property with the building height in metres; used when present and
+            numeric, otherwise the height is measured from the points.
+        roof_percentile (95.0): measured height = this percentile of z of the points inside the footprint ...
+        ground_class (2): ... minus the median z of the points of this class within ``ground_radius`` of the
+            footprint's bounding box (any building's or none's: ground points are collected before assignment) ...
+        ground_radius (10.0): ... (metres) ...
+        ground_percentile (5.0): ... or, where no such point exists, minus this percentile of z of all points
+            assigned to the building.
+    Output
+        rotation_deg (0.0): rotation about z of the local frame (degrees, counter-clockwise from the CRS x axis),
+            e.g. to align the local axes with the streets; the offset is the kept points' minimum corner, rounded
+            down to whole metres.
+        quantize_rgb (True): store colour with 8-bit precision: the red/green/blue fields hold ``v8 * 257``
+            (the LAS 16-bit range, so readers see the right colour) and ``PointCloud.rgb8()`` returns ``v8`` exactly.
+            The 16-bit/8-bit decision is taken once over all kept points.
+        distance_dim (True): add the extra dimension ``footprint_distance`` (float32, metres, 0 inside) to the
+            building point clouds.
+        chunk_points (1000000): points per chunk when streaming tiles (memory per chunk about 100 bytes/point).
+    """
+
+    section = "prep"
+
+    buffer: float = 5.0
+    id_field: str = "id"
+    status_field: str = "status"
+    excluded_statuses: tuple[str, ...] = DEFAULT_EXCLUDED_STATUSES
+    min_height: float = 3.0
+    height_field: str = "height"
+    roof_percentile: float = 95.0
+    ground_class: int = 2
+    ground_radius: float = 10.0
+    ground_percentile: float = 5.0
+    rotation_deg: float = 0.0
+    quantize_rgb: bool = True
+    distance_dim: bool = True
+    chunk_points: int = 1_000_000
+
+    def __post_init__(self) -> None:
+        checks = [
+            (math.isfinite(self.buffer) and self.buffer >= 0, "buffer must be a finite number >= 0"),
+            (math.isfinite(self.min_height), "min_height must be finite"),
+            (0 <= self.roof_percentile <= 100, "roof_percentile must be in [0, 100]"),
+            (0 <= self.ground_percentile <= 100, "ground_percentile must be in [0, 100]"),
+            (math.isfinite(self.ground_radius) and self.ground_radius >= 0, "ground_radius must be >= 0"),
+            (math.isfinite(self.rotation_deg), "rotation_deg must be finite"),
+            (self.chunk_points >= 1, "chunk_points must be >= 1"),
+            (bool(self.id_field) and bool(self.status_field) and bool(self.height_field),
+             "id_field, status_field and height_field must not be empty"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ConfigError(f"prep parameters: {message}")
+
+    def is_excluded(self, status: Any) -> bool:
+        """True when a footprint's status value marks it as not built yet."""
+        if status is None:
+            return False
+        return _norm_status(status) in {_norm_status(s) for s in self.excluded_statuses}
+
+
+def _norm_status(value: Any) -> str:
+    return " ".join(str(value).split()).casefold()
+
+
+@dataclasses.dataclass
+class BuildingPoints:
+    """The points of one building.
+
+    ``cloud`` is in CRS coordinates (float64) with every attribute of the input (colour quantised, see
+    :class:`PrepParams`) plus ``footprint_distance`` when enabled. ``height`` is in metres; ``height_source`` is
+    "footprint" (the footprint's height property), "points" (roof percentile minus ground points' median) or
+    "points-no-ground" (no ground point near: roof percentile minus a low percentile of the building's points).
+    """
+
+    id: str
+    cloud: PointCloud
+    footprint: BaseGeometry
+    properties: dict[str, Any]
+    height: float
+    height_source: str
+    ground_z: float
+    points_inside: int
+    status: str | None = None
+
+    def __len__(self) -> int:
+        return len(self.cloud)
+
+    @property
+    def distance(self) -> np.ndarray | None:
+        """Each point's distance to the footprint (0 inside), when ``distance_dim`` was on."""
+        return self.cloud.attrs.get(DISTANCE_DIM)
+
+    def rgb8(self) -> np.ndarray | None:
+        """8-bit colour (N, 3) or ``None``."""
+        return self.cloud.rgb8()
+
+    def local_xyz(self, frame: LocalFrame) -> np.ndarray:
+        """The points in a local frame (float64; safe to cast to float32)."""
+        return frame.to_local(self.cloud.xyz)
+
+
+@dataclasses.dataclass
+class PrepResult:
+    """Output of :func:`prep_tiles` / :func:`prep_cloud`.
+
+    ``dropped`` maps footprint ids to the reason they produced no building ("under construction (status ...)",
+    "lower than 3 m (...)", "no points within 5 m", "no points inside the footprint").
+    """
+
+    buildings: list[BuildingPoints]
+    dropped: dict[str, str]
+    frame: LocalFrame
+    crs: CRS | None
+    params: PrepParams
+    points_read: int = 0
+    points_kept: int = 0
+    footprints: int = 0
+    sources: list[str] = dataclasses.field(default_factory=list)
+    footprint_source: str | None = None
+    seconds: float = 0.0
+
+    @property
+    def points_per_second(self) -> float:
+        return self.points_read / self.seconds if self.seconds > 0 else float("nan")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Point -> footprint assignment
+# ----------------------------------------------------------------------------------------------------------------
+
+
+class FootprintIndex:
+    """A grid index of footprints for vectorised distance queries of many points.
+
+    Built once per footprint set and ``reach`` (the largest distance asked for). The grid's cells list the
+    footprints that lie within ``reach`` of them (exact cell-to-polygon distance), and flag the cells that lie wholly
+    inside a footprint. A query expands each point to its cell's (point, footprint) candidates, culls them by the
+    footprints' bounding boxes grown by ``reach``, then resolves them exactly: inside (distance 0) from the cell flag
+    or ``shapely.contains_xy``, the rest by a numpy point-to-segment distance over the footprint's edges (all rings,
+    holes included). Everything is array code; Python loops run over batches only.
+    """
+
+    #: Upper bounds on the work arrays (elements), which keeps memory per batch at a few tens of MB.
+    POINT_BATCH = 262_144
+    EDGE_BATCH = 2_000_000
+    MAX_CELLS = 4_000_000
+    MAX_ENTRIES = 8_000_000
+
+    def __init__(self, polygons: Sequence[BaseGeometry] | np.ndarray, reach: float):
+        polys = np.asarray(list(polygons) if not isinstance(polygons, np.ndarray) else polygons, dtype=object)
+        if polys.ndim != 1 or not len(polys):
+            raise ValueError("FootprintIndex needs at least one footprint")
+        if not math.isfinite(reach) or reach < 0:
+            raise ValueError(f"reach must be a finite number >= 0, got {reach}")
+        self.polygons = polys
+        self.reach = float(reach)
+        shapely.prepare(polys)
+        bounds = shapely.bounds(polys)
+        self.lo = bounds[:, :2] - self.reach
+        self.hi = bounds[:, 2:] + self.reach
+        self.origin = self.lo.min(axis=0)
+        self.lo -= self.origin
+        self.hi -= self.origin
+        # Edges of every ring of every part, relative to the origin, grouped by footprint.
+        parts, part_of = shapely.get_parts(polys, return_index=True)
+        rings, ring_of = shapely.get_rings(parts, return_index=True)
+        coords, coord_ring = shapely.get_coordinates(rings, return_index=True)
+        coords = coords - self.origin
+        same = coord_ring[:-1] == coord_ring[1:]
+        a, b = coords[:-1][same], coords[1:][same]
+        edge_fp = part_of[ring_of[coord_ring[:-1][same]]]
+        order = np.argsort(edge_fp, kind="stable")
+        self.ax, self.ay = a[order, 0], a[order, 1]
+        self.dx, self.dy = b[order, 0] - self.ax, b[order, 1] - self.ay
+        self.len2 = self.dx * self.dx + self.dy * self.dy
+        self.edge_count = np.bincount(edge_fp, minlength=len(polys))
+        self.edge_start = np.concatenate([[0], np.cumsum(self.edge_count)[:-1]])
+        self._build_grid()
+
+    def __len__(self) -> int:
+        return len(self.polygons)
+
+    def _build_grid(self) -> None:
+        size = self.hi - self.lo
+        extent = np.maximum(self.hi.max(axis=0), 1e-9)
+        # cells about half the reach (a tight cull) but not much smaller than the footprints, bounded in number
+        cell = max(self.reach / 2, 0.25 * float(np.median(size.max(axis=1))) - self.reach / 2, 0.5,
+                   math.sqrt(extent[0] * extent[1] / self.MAX_CELLS))
+        while True:
+            ix0, iy0 = (self.lo // cell).astype(np.int64).T
+            ix1, iy1 = (self.hi // cell).astype(np.int64).T
+            wx, wy = ix1 - ix0 + 1, iy1 - iy0 + 1
+            counts = wx * wy
+            if counts.sum() <= self.MAX_ENTRIES:
+                break
+            cell *= 1.5
+        self.cell = cell
+        self.nx, self.ny = int(extent[0] // cell) + 1, int(extent[1] // cell) + 1
+        fp = np.repeat(np.arange(len(counts)), counts)
+        k = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+        cx = ix0[fp] + k % wx[fp]
+        cy = iy0[fp] + k // wx[fp]
+        # exact cull: keep a (cell, footprint) entry only when the footprint is within reach of the cell
+        x0, y0 = cx * cell + self.origin[0], cy * cell + self.origin[1]
+        boxes = shapely.box(x0, y0, x0 + cell, y0 + cell)
+        near = shapely.dwithin(self.polygons[fp], boxes, self.reach)
+        full = shapely.contains(self.polygons[fp[near]], boxes[near])
+        fp, cell_id = fp[near], (cy * self.nx + cx)[near]
+        order = np.lexsort((fp, cell_id))
+        self.cell_fp = fp[order]
+        self.cell_full = full[order]
+        self.cell_count = np.bincount(cell_id, minlength=self.nx * self.ny)
+        self.cell_start = np.concatenate([[0], np.cumsum(self.cell_count)[:-1]])
+
+    def _candidates(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(point, footprint, cell wholly inside) for the points in cells within reach of the footprint."""
+        cx = np.floor(x / self.cell)
+        cy = np.floor(y / self.cell)
+        ok = (cx >= 0) & (cx < self.nx) & (cy >= 0) & (cy < self.ny)
+        pts = np.flatnonzero(ok)
+        cell = cy[ok].astype(np.int64) * self.nx + cx[ok].astype(np.int64)
+        cnt = self.cell_count[cell]
+        pt = np.repeat(pts, cnt)
+        entry = np.repeat(self.cell_start[cell] - (np.cumsum(cnt) - cnt), cnt) + np.arange(len(pt))
+        fp = self.cell_fp[entry]
+        px, py = x[pt], y[pt]
+        keep = (px >= self.lo[fp, 0]) & (px <= self.hi[fp, 0]) & (py >= self.lo[fp, 1]) & (py <= self.hi[fp, 1])
+        return pt[keep], fp[keep], self.cell_full[entry[keep]]
+
+    def _inside(self, x: np.ndarray, y: np.ndarray, pt: np.ndarray, fp: np.ndarray, full: np.ndarray) -> np.ndarray:
+        inside = full.copy()
+        test = np.flatnonzero(~full)
+        if len(test):
+            inside[test] = shapely.contains_xy(self.polygons[fp[test]], x[pt[test]] + self.origin[0],
+                                               y[pt[test]] + self.origin[1])
+        return inside
+
+    def _edge_distance(self, px: np.ndarray, py: np.ndarray, fp: np.ndarray) -> np.ndarray:
+        """Distance from each point to the boundary of its paired footprint (arrays of equal length)."""
+        out = np.empty(len(fp))
+        ne = self.edge_count[fp]
+        ends = np.cumsum(ne)
+        start = 0
+        while start < len(fp):
+            # the largest batch whose expansion stays under EDGE_BATCH (at least one pair)
+            base = ends[start - 1] if start else 0
+            stop = max(int(np.searchsorted(ends, base + self.EDGE_BATCH, side="right")), start + 1)
+            sl = slice(start, stop)
+            n = ne[sl]
+            first = np.cumsum(n) - n
+            rep = np.repeat(np.arange(stop - start), n)
+            e = np.repeat(self.edge_start[fp[sl]] - first, n) + np.arange(int(n.sum()))
+            wx = px[sl][rep] - self.ax[e]
+            wy = py[sl][rep] - self.ay[e]
+            dx, dy, len2 = self.dx[e], self.dy[e], self.len2[e]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                t = np.where(len2 > 0, (wx * dx + wy * dy) / len2, 0.0)
+            np.clip(t, 0.0, 1.0, out=t)
+            wx -= t * dx
+            wy -= t * dy
+            d2 = wx * wx + wy * wy
+            out[sl] = np.sqrt(np.minimum.reduceat(d2, first))
+            start = stop
+        return out
+
+    def _batches(self, xy: np.ndarray) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        for start in range(0, len(xy), self.POINT_BATCH):
+            yield (start, xy[start:start + self.POINT_BATCH, 0] - self.origin[0],
+                   xy[start:start + self.POINT_BATCH, 1] - self.origin[1])
+
+    def _check(self, max_distance: float | None) -> float:
+        max_distance = self.reach if max_distance is None else float(max_distance)
+        if max_distance > self.reach:
+            raise ValueError(f"max_distance {max_distance} exceeds the index reach {self.reach}")
+        return max_distance
+
+    def pairs(self, xy: np.ndarray, max_distance: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """All (point, footprint, distance) with distance <= ``max_distance`` (default ``reach``; 0 inside)."""
+        max_distance = self._check(max_distance)
+        out_pt, out_fp, out_d = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros(0)]
+        for start, x, y in self._batches(xy):
+            pt, fp, full = self._candidates(x, y)
+            inside = self._inside(x, y, pt, fp, full)
+            dist = np.zeros(len(pt))
+            out = np.flatnonzero(~inside)
+            if len(out):
+                dist[out] = self._edge_distance(x[pt[out]], y[pt[out]], fp[out])
+            keep = dist <= max_distance
+            out_pt.append(pt[keep] + start)
+            out_fp.append(fp[keep])
+            out_d.append(dist[keep])
+        return np.concatenate(out_pt), np.concatenate(out_fp), np.concatenate(out_d)
+
+    def near_pairs(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(point, footprint) for points in the footprint's grown bounding box and in a grid cell within ``reach``
+        of it: a cheap superset of the pairs within ``reach`` (at most a cell diagonal farther)."""
+        out_pt, out_fp = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+        for start, x, y in self._batches(xy):
+            pt, fp, _ = self._candidates(x, y)
+            out_pt.append(pt + start)
+            out_fp.append(fp)
+        return np.concatenate(out_pt), np.concatenate(out_fp)
+
+    def assign(self, xy: np.ndarray, max_distance: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest footprint of each point within ``max_distance``: (index, -1 = none; distance, inf = none).
+
+        A point inside one or more footprints goes to the first of them (lowest index) with distance 0; any other
+        point within ``max_distance`` to the nearest footprint (ties: lowest index; a point on a boundary has
+        distance 0).
+        """
+        max_distance = self._check(max_distance)
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        index = np.full(len(xy), -1, dtype=np.int64)
+        distance = np.full(len(xy), np.inf)
+        for start, x, y in self._batches(xy):
+            pt, fp, full = self._candidates(x, y)
+            if not len(pt):
+                continue
+            inside = self._inside(x, y, pt, fp, full)
+            # inside: the lowest footprint index among those containing the point
+            owner = np.full(len(x), np.iinfo(np.int64).max)
+            np.minimum.at(owner, pt[inside], fp[inside])
+            has = owner != np.iinfo(np.int64).max
+            index[start + np.flatnonzero(has)] = owner[has]
+            distance[start + np.flatnonzero(has)] = 0.0
+            # outside every footprint: exact distances, then the nearest (ties: lowest index)
+            rest = np.flatnonzero(~has[pt])
+            if not len(rest):
+                continue
+            pt, fp = pt[rest], fp[rest]
+            dist = self._edge_distance(x[pt], y[pt], fp)
+            keep = dist <= max_distance
+            pt, fp, dist = pt[keep], fp[keep], dist[keep]
+            order = np.lexsort((fp, dist, pt))
+            pt, fp, dist = pt[order], fp[order], dist[order]
+            first = np.ones(len(pt), dtype=bool)
+            first[1:] = pt[1:] != pt[:-1]
+            index[start + pt[first]] = fp[first]
+            distance[start + pt[first]] = dist[first]
+        return index, distance
+
+
+def _polygons_of(footprints: Footprints | Sequence[BaseGeometry] | np.ndarray) -> np.ndarray:
+    if isinstance(footprints, Footprints):
+        return footprints.polygons
+    return np.asarray(list(footprints), dtype=object)
+
+
+def assign_points(xy: np.ndarray, footprints: Footprints | Sequence[BaseGeometry] | np.ndarray,
+                  buffer: float) -> tuple[np.ndarray, np.ndarray]:
+    """Assign each point (N, 2+; only x and y are used) to its nearest footprint within ``buffer``.
+
+    Returns ``(index, distance)``: ``index`` int64 (N,) into the footprints, -1 when no footprint is within
+    ``buffer``; ``distance`` float64 (N,), 0 inside (or on the boundary of) the footprint, ``inf`` when unassigned.
+    Ties go to the footprint with the lower index. Footprints must be in the points' CRS.
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    xy = xy[:, :2] if xy.ndim == 2 else xy.reshape(-1, 2)
+    polys = _polygons_of(footprints)
+    if not len(polys) or not len(xy):
+        return np.full(len(xy), -1, dtype=np.int64), np.full(len(xy), np.inf)
+    return FootprintIndex(polys, buffer).assign(xy)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Accumulation and per-building results
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _group_percentile(groups: np.ndarray, values: np.ndarray, q: float, n_groups: int) -> np.ndarray:
+    """Percentile ``q`` (linear interpolation, like ``numpy.percentile``) of ``values`` per group; NaN when empty."""
+    out = np.full(n_groups, np.nan)
+    if not len(groups):
+        return out
+    order = np.lexsort((values, groups))
+    v = values[order]
+    counts = np.bincount(groups, minlength=n_groups)
+    starts = np.cumsum(counts) - counts
+    has = counts > 0
+    pos = (counts[has] - 1) * (q / 100.0)
+    lo = np.floor(pos).astype(np.int64)
+    hi = np.minimum(lo + 1, counts[has] - 1)
+    vlo, vhi = v[starts[has] + lo], v[starts[has] + hi]
+    out[has] = vlo + (pos - lo) * (vhi - vlo)
+    return out
+
+
+def _property_height(properties: dict[str, Any], field: str) -> float | None:
+    value = properties.get(field)
+    if value is None or isinstance(value, bool):
+        return None
+    try:
+        height = float(str(value).strip().replace(",", ".")) if isinstance(value, str) else float(value)
+    except (TypeError, ValueError):
+        return None
+    return height if math.isfinite(height) else None
+
+
+class _Accumulator:
+    """Collects, chunk after chunk, the points kept for each footprint and the ground points near them."""
+
+    def __init__(self, footprints: Footprints, params: PrepParams):
+        self.footprints = footprints
+        self.params = params
+        self.excluded = np.array([params.is_excluded(p.get(params.status_field)) for p in footprints.properties],
+                                 dtype=bool)
+        self.index = FootprintIndex(footprints.polygons, params.buffer)
+        self.ground_index = FootprintIndex(footprints.polygons, params.ground_radius)
+        self.clouds: list[PointCloud] = []
+        self.building: list[np.ndarray] = []
+        self.distance: list[np.ndarray] = []
+        self.ground_fp: list[np.ndarray] = []
+        self.ground_z: list[np.ndarray] = []
+        self.points_read = 0
+
+    def add(self, chunk: PointCloud) -> None:
+        self.points_read += len(chunk)
+        if not len(chunk):
+            return
+        xy = chunk.xyz[:, :2]
+        index, distance = self.index.assign(xy)
+        hit = index >= 0
+        excluded = np.zeros(len(index), dtype=bool)
+        excluded[hit] = self.excluded[index[hit]]
+        keep = np.flatnonzero(hit & ~excluded)
+        if len(keep):
+            self.clouds.append(chunk.subset(keep))
+            self.building.append(index[keep])
+            self.distance.append(distance[keep])
+        classes = chunk.attrs.get("classification")
+        if classes is not None:
+            ground = np.flatnonzero(classes == self.params.ground_class)
+            if len(ground):
+                pt, fp = self.ground_index.near_pairs(xy[ground])
+                self.ground_fp.append(fp)
+                self.ground_z.append(chunk.xyz[ground[pt], 2])
+
+    def finish(self, crs: CRS | None, sources: list[str], seconds: float) -> PrepResult:
+        return _finish(self, crs, sources, seconds)
+
+
+def _finish(acc: _Accumulator, crs: CRS | None, sources: list[str], seconds: float) -> PrepResult:
+    params, fps = acc.params, acc.footprints
+    n_fp = len(fps)
+    dropped: dict[str, str] = {}
+    for i in np.flatnonzero(acc.excluded):
+        status = fps.properties[i].get(params.status_field)
+        dropped[fps.ids[i]] = f"under construction ({params.status_field}={status!r})"
+    if acc.clouds:
+        kept = PointCloud.concatenate(acc.clouds) if len(acc.clouds) > 1 else acc.clouds[0]
+        building = np.concatenate(acc.building)
+        distance = np.concatenate(acc.distance)
+    else:
+        kept, building, distance = None, np.zeros(0, np.int64), np.zeros(0)
+    acc.clouds.clear()
+
+    z = kept.xyz[:, 2] if kept is not None else np.zeros(0)
+    inside = distance == 0
+    counts = np.bincount(building, minlength=n_fp)
+    counts_inside = np.bincount(building[inside], minlength=n_fp)
+    roof = _group_percentile(building[inside], z[inside], params.roof_percentile, n_fp)
+    ground_fp = np.concatenate(acc.ground_fp) if acc.ground_fp else np.zeros(0, np.int64)
+    ground_z = np.concatenate(acc.ground_z) if acc.ground_z else np.zeros(0)
+    ground = _group_percentile(ground_fp, ground_z, 50.0, n_fp)
+    low = _group_percentile(building, z, params.ground_percentile, n_fp)
+
+    if kept is not None and params.quantize_rgb and kept.has_rgb:
+        rgb8 = kept.rgb8()
+        for k, name in enumerate(("red", "green", "blue")):
+            kept.attrs[name] = rgb8[:, k].astype(np.uint16) * np.uint16(257)
+    if kept is not None and params.distance_dim:
+        kept.attrs[DISTANCE_DIM] = distance.astype(np.float32)
+        if DISTANCE_DIM not in kept.extra_dims:
+            kept.extra_dims = [*kept.extra_dims, DISTANCE_DIM]
+
+    order = np.argsort(building, kind="stable")
+    starts = np.cumsum(counts) - counts
+    buildings: list[BuildingPoints] = []
+    written = np.zeros(len(building), dtype=bool) if kept is not None else None
+    for i in range(n_fp):
+        fid = fps.ids[i]
+        if acc.excluded[i]:
+            continue
+        props = fps.properties[i]
+        status = props.get(params.status_field)
+        if counts[i] == 0:
+            dropped[fid] = f"no points within {params.buffer:g} m"
+            continue
+        given = _property_height(props, params.height_field)
+        if given is not None:
+            height, source = given, "footprint"
+            ground_z_i = float(ground[i]) if np.isfinite(ground[i]) else float(low[i])
+        elif counts_inside[i] == 0:
+            dropped[fid] = "no points inside the footprint (height unknown)"
+            continue
+        elif np.isfinite(ground[i]):
+            height, source, ground_z_i = float(roof[i] - ground[i]), "points", float(ground[i])
+        else:
+            height, source, ground_z_i = float(roof[i] - low[i]), "points-no-ground", float(low[i])
+        if height < params.min_height:
+            dropped[fid] = f"lower than {params.min_height:g} m ({height:.2f} m, {source})"
+            continue
+        rows = order[starts[i]:starts[i] + counts[i]]
+        written[rows] = True
+        buildings.append(BuildingPoints(
+            id=fid, cloud=kept.subset(rows), footprint=fps.polygons[i], properties=dict(props), height=height,
+            height_source=source, ground_z=ground_z_i, points_inside=int(counts_inside[i]),
+            status=None if status is None else str(status)))
+
+    if buildings:
+        frame = LocalFrame.around(kept.xyz[written], rotation_deg=params.rotation_deg)
+    else:
+        x0, y0, _, _ = fps.bounds
+        frame = LocalFrame(offset=(math.floor(x0), math.floor(y0), 0.0), rotation_deg=params.rotation_deg)
+    return PrepResult(buildings=buildings, dropped=dropped, frame=frame, crs=crs, params=params,
+                      points_read=acc.points_read, points_kept=int(sum(len(b) for b in buildings)),
+                      footprints=n_fp, sources=sources, footprint_source=fps.source, seconds=seconds)
+
+
+def _footprints_in(footprints: Footprints, crs: CRS | None) -> Footprints:
+    """The footprints in the points' CRS (reprojected when they differ)."""
+    if crs is None or same_crs(footprints.crs, crs):
+        return footprints
+    return footprints.to_crs(crs)
+
+
+def prep_cloud(cloud: PointCloud, footprints: Footprints, params: PrepParams | None = None) -> PrepResult:
+    """Prep one in-memory cloud (all tiles already merged). Footprints in another CRS are reprojected."""
+    params = params or PrepParams()
+    clock = time.perf_counter()
+    footprints = _footprints_in(footprints, cloud.crs)
+    if len(cloud):
+        lo, hi = cloud.xyz.min(axis=0), cloud.xyz.max(axis=0)
+        check_overlap(footprints, (lo[0], lo[1], hi[0], hi[1]), cloud.source or "the point cloud")
+    acc = _Accumulator(footprints, params)
+    for start in range(0, len(cloud), params.chunk_points):
+        acc.add(cloud.subset(slice(start, start + params.chunk_points)) if len(cloud) > params.chunk_points
+                else cloud)
+    return acc.finish(cloud.crs, [cloud.source] if cloud.source else [], time.perf_counter() - clock)
+
+
+def split_buildings(cloud: PointCloud, footprints: Footprints, params: PrepParams | None = None) -> list[BuildingPoints]:
+    """The per-building point sets of one cloud (see :func:`prep_cloud` for the frame and the dropped footprints)."""
+    return prep_cloud(cloud, footprints, params).buildings
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Tiles (streaming)
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class TileSet:
+    """What the tile headers say: their common CRS, joint 2D bounds and total point count."""
+
+    paths: list[Path]
+    crs: CRS
+    bounds: tuple[float, float, float, float]
+    points: int
+
+    @property
+    def name(self) -> str:
+        if len(self.paths) == 1:
+            return str(self.paths[0])
+        return f"{len(self.paths)} tiles ({self.paths[0].name}, ...)"
+
+
+def scan_tiles(paths: Sequence[str | Path], crs: str | CRS | None = None) -> TileSet:
+    """Check the tiles' headers: readable, one CRS for all (the file's, or ``crs`` where a file has none).
+
+    A tile whose CRS differs from the first tile's is refused (tiles are not reprojected: vertical datums and
+    coordinate precision would change silently); a tile without CRS needs ``crs``.
+    """
+    if not paths:
+        raise InputError("no input tiles given")
+    tiles = [Path(p) for p in paths]
+    seen: dict[Path, Path] = {}
+    for tile in tiles:
+        key = tile.resolve()
+        if key in seen:
+            raise InputError(f"tile given twice (also as {seen[key]})", tile)
+        seen[key] = tile
+    common: CRS | None = None
+    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
+    total = 0
+    for tile in tiles:
+        header = read_header(tile)
+        try:
+            file_crs = header.parse_crs()
+        except Exception as exc:  # noqa: BLE001 - laspy/pyproj raise many kinds on broken CRS records
+            raise CRSError(f"unreadable CRS record ({' '.join(str(exc).split())[:160]})", tile) from None
+        tile_crs = resolve_crs(file_crs, crs, tile)
+        if tile_crs is None:
+            raise CRSError("no CRS record in the file; pass --crs (e.g. --crs EPSG:28992)", tile)
+        if common is None:
+            common = tile_crs
+        elif not same_crs(common, tile_crs):
+            raise CRSError(f"CRS {tile_crs.name!r} differs from {common.name!r} of {tiles[0].name}; all tiles "
+                           f"must share one CRS (reproject this tile first)", tile)
+        if header.point_count:
+            lo = np.minimum(lo, np.asarray(header.mins[:2], dtype=np.float64))
+            hi = np.maximum(hi, np.asarray(header.maxs[:2], dtype=np.float64))
+        total += int(header.point_count)
+    if not total:
+        raise InputError("the tiles hold no points", tiles[0])
+    return TileSet(tiles, common, (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])), total)
+
+
+def _prefetch(chunks: Iterator[PointCloud]) -> Iterator[PointCloud]:
+    """Decode the next chunk in a background thread while the current one is assigned (2 cores: ~1.5x)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    sentinel = object()
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lidarmap-prep-read")
+    try:
+        future = pool.submit(next, chunks, sentinel)
+        while True:
+            chunk = future.result()
+            if chunk is sentinel:
+                return
+            future = pool.submit(next, chunks, sentinel)
+            yield chunk
+    finally:
+        pool.shutdown(wait=True)  # the pending read finishes before the files are closed
+        if hasattr(chunks, "close"):
+            chunks.close()
+
+
+def prep_tiles(paths: Sequence[str | Path], footprints: Footprints, params: PrepParams | None = None,
+               crs: str | CRS | None = None, progress: Callable[[int], None] | None = None) -> PrepResult:
+    """Stream any number of tiles (chunks of ``params.chunk_points``) and split them into buildings.
+
+    ``crs`` is used for tiles without a CRS record; footprints in another CRS are reprojected to the tiles'.
+    ``progress`` is called with the number of points of every chunk read. Raises :class:`InputError` /
+    :class:`CRSError` naming the file for unreadable tiles, CRS conflicts and footprints that miss the points.
+    """
+    params = params or PrepParams()
+    clock = time.perf_counter()
+    tiles = scan_tiles(paths, crs)
+    footprints = _footprints_in(footprints, tiles.crs)
+    check_overlap(footprints, tiles.bounds, tiles.name)
+    acc = _Accumulator(footprints, params)
+
+    def chunks() -> Iterator[PointCloud]:
+        for tile in tiles.paths:
+            yield from iter_las(tile, chunk_size=params.chunk_points, crs=crs)
+
+    for chunk in _prefetch(chunks()):
+        acc.add(chunk)
+        if progress is not None:
+            progress(len(chunk))
+    return acc.finish(tiles.crs, [str(p) for p in tiles.paths], time.perf_counter() - clock)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Output
+# ----------------------------------------------------------------------------------------------------------------
+
+INDEX_COLUMNS = ["id", "file", "points", "points_inside", "height", "height_source", "ground_z",
+                 "xmin", "ymin", "zmin", "xmax", "ymax", "zmax", "status"]
+_MARKER = "prep.json"
+
+
+def building_file_name(building_id: str, taken: set[str] | None = None) -> str:
+    """A safe file name ``<id>.laz`` (characters other than letters, digits, ``.-_`` become ``_``; unique)."""
+    stem = re.sub(r"[^A-Za-z0-9._-]", "_", str(building_id)).strip(".") or "building"
+    name, k = f"{stem}.laz", 1
+    while taken is not None and name.lower() in taken:
+        k += 1
+        name = f"{stem}_{k}.laz"
+    if taken is not None:
+        taken.add(name.lower())
+    return name
+
+
+def check_out_dir(out_dir: str | Path) -> Path:
+    """Refuse an output path that is a file or a non-empty folder other than an earlier prep output."""
+    out = Path(out_dir)
+    if out.exists():
+        if not out.is_dir():
+            raise InputError("output exists and is not a folder", out)
+        if any(out.iterdir()) and not (out / _MARKER).exists():
+            raise InputError("output folder is not empty and holds no earlier prep output; choose another -o", out)
+    return out
+
+
+def _fmt(value: float) -> str:
+    return f"{value:.3f}" if math.isfinite(value) else ""
+
+
+def write_prep(out_dir: str | Path, result: PrepResult,
+               progress: Callable[[int], None] | None = None) -> Path:
+    """Write ``buildings/<id>.laz`` (CRS coordinates), ``buildings.csv``, ``frame.json`` and ``prep.json``.
+
+    Everything goes to a temporary folder beside ``out_dir`` that is renamed onto it at the end, so an error never
+    leaves a half-written output. An earlier prep output at ``out_dir`` is replaced; any other non-empty folder is
+    refused.
+    """
+    out = check_out_dir(out_dir)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        (tmp / "buildings").mkdir()
+        rows, taken = [], set()
+        for building in result.buildings:
+            name = building_file_name(building.id, taken)
+            write_las(tmp / "buildings" / name, building.cloud)
+            lo, hi = building.cloud.xyz.min(axis=0), building.cloud.xyz.max(axis=0)
+            rows.append([building.id, f"buildings/{name}", len(building), building.points_inside,
+                         _fmt(building.height), building.height_source, _fmt(building.ground_z),
+                         *(_fmt(v) for v in (lo[0], lo[1], lo[2], hi[0], hi[1], hi[2])), building.status or ""])
+            if progress is not None:
+                progress(1)
+        text = io.StringIO()
+        writer = csv.writer(text, lineterminator="\n")
+        writer.writerow(INDEX_COLUMNS)
+        writer.writerows(rows)
+        write_text_atomic(tmp / "buildings.csv", text.getvalue())
+        frame = json.loads(result.frame.to_json())
+        if result.crs is not None:
+            frame["crs"] = result.crs.to_wkt()
+        write_text_atomic(tmp / "frame.json", json.dumps(frame, indent=2))
+        summary = {
+            "tiles": result.sources, "footprints": result.footprint_source,
+            "crs": describe_crs(result.crs), "params": dataclasses.asdict(result.params),
+            "points_read": result.points_read, "points_kept": result.points_kept,
+            "footprint_count": result.footprints, "buildings": len(result.buildings),
+            "dropped": result.dropped, "seconds": round(result.seconds, 3),
+        }
+        write_text_atomic(tmp / _MARKER, json.dumps(summary, indent=2))
+        _swap_into_place(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def _swap_into_place(tmp: Path, out: Path) -> None:
+    if not out.exists():
+        os.replace(tmp, out)
+        return
+    if not any(out.iterdir()):
+        out.rmdir()
+        os.replace(tmp, out)
+        return
+    old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+    old.rmdir()
+    os.replace(out, old)
+    try:
+        os.replace(tmp, out)
+    except BaseException:
+        os.replace(old, out)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def read_prep_index(out_dir: str | Path) -> list[dict[str, Any]]:
+    """The rows of ``buildings.csv`` (numbers parsed; ``path`` is the building file's full path)."""
+    out = Path(out_dir)
+    index = out / "buildings.csv"
+    if not index.exists():
+        raise InputError("no buildings.csv: not a prep output folder", out)
+    rows = []
+    with index.open(encoding="utf-8", newline="") as fh:
+        for row in csv.DictReader(fh):
+            parsed: dict[str, Any] = dict(row)
+            for key in ("points", "points_inside"):
+                parsed[key] = int(row[key])
+            for key in ("height", "ground_z", "xmin", "ymin", "zmin", "xmax", "ymax", "zmax"):
+                parsed[key] = float(row[key]) if row[key] else float("nan")
+            parsed["path"] = out / row["file"]
+            rows.append(parsed)
+    return rows

@@ -1,0 +1,251 @@
+"""Per-point input features, built by ONE code path for training and for inference.
+
+Two steps, both used unchanged by training (:mod:`lidarmap.segment.blocks`) and prediction
+(:mod:`lidarmap.segment.predict`):
+
+* :func:`point_features` -- block-independent values per point, once per file: coordinates in metres in a local
+  frame, height above ground, robustly normalised intensity, return flags, local shape at full density
+  (planarity, scattering, verticality, roughness of the ``geometry_k`` nearest neighbours: the network sees a
+  subsample of each block, so fine roughness -- tree crowns against roofs -- would be lost otherwise), colour
+  (+ presence flag).
+* :func:`block_input` -- the network input of one block: block-centred xyz (metres, for neighbourhoods) and the
+  channel matrix ``[x, y, z (block-centred / half block), hag, intensity, returns..., shape..., (rgb,
+  rgb_present)]``.
+
+The :class:`FeatureSpec` lists the channels and every parameter that changes them; it is stored in the model file
+and a model whose spec differs from what this code computes is refused (:func:`check_spec`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from lidarmap.errors import LidarmapError
+from lidarmap.frame import LocalFrame
+from lidarmap.io.pointcloud import PointCloud
+from lidarmap.segment.ground import GroundGrid, estimate_ground, ground_from_points
+
+#: Bumped whenever the meaning of a channel changes; models made with another version are refused.
+FEATURE_VERSION = 2
+GROUND_CLASS = 2
+BUILDING_CLASS = 6
+#: Classes that carry no label: excluded from the loss and from scores.
+UNLABELLED_CLASSES = (0, 1)
+#: Neighbourhood features of :func:`eigen_features`, in column order.
+EIGEN_NAMES = ("linearity", "planarity", "scattering", "verticality", "normal_z", "roughness", "z_range",
+               "z_above_min", "kth_distance")
+#: Points per KD-tree query batch of :func:`eigen_features` (bounded memory).
+CHUNK = 100_000
+
+
+class ModelSpecError(LidarmapError):
+    """A model file whose feature spec or format does not fit this version of lidarmap."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FeatureSpec:
+    """What the network is fed; stored in the model file.
+
+    version: feature code version (:data:`FEATURE_VERSION`).
+    use_rgb: add red, green, blue (0..1 minus 0.5) and an ``rgb_present`` flag; files without colour, or with
+        all-zero colour (IGN LiDAR HD), get zeros and flag 0.
+    ground: ``"auto"`` = class 2 when the file has at least ``min_ground_points`` of them, else estimated;
+        ``"estimate"`` = always the morphological filter.
+    min_ground_points: class-2 points needed to trust the file's ground.
+    ground_cell, ground_max_window, ground_slope, ground_threshold: grid cell (m), widest removed object (m),
+        steepest kept terrain (m/m) and always-allowed step (m) of the ground filter (:mod:`.ground`).
+    hag_scale: height above ground is divided by this (m) and clipped to [-1, 5].
+    geometry_k: neighbours (at full density) of the shape channels; roughness (plane residual, m) is divided by
+        ``roughness_scale`` and clipped to [0, 3].
+    block_size: block edge (m); xyz channels are divided by half of it.
+    """
+
+    version: int = FEATURE_VERSION
+    use_rgb: bool = False
+    ground: str = "auto"
+    min_ground_points: int = 500
+    ground_cell: float = 1.0
+    ground_max_window: float = 40.0
+    ground_slope: float = 0.12
+    ground_threshold: float = 0.4
+    hag_scale: float = 10.0
+    geometry_k: int = 16
+    roughness_scale: float = 0.1
+    block_size: float = 32.0
+
+    def __post_init__(self) -> None:
+        if self.ground not in ("auto", "estimate"):
+            raise ValueError(f"ground must be 'auto' or 'estimate', not {self.ground!r}")
+
+    @property
+    def channels(self) -> list[str]:
+        names = ["x", "y", "z", "hag", "intensity", "single_return", "last_return", "return_fraction",
+                 "planarity", "scattering", "verticality", "roughness"]
+        return names + (["red", "green", "blue", "rgb_present"] if self.use_rgb else [])
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**dataclasses.asdict(self), "channels": self.channels}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "FeatureSpec":
+        fields = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in fields})
+
+
+def check_spec(stored: dict[str, Any], source: str | None = None) -> FeatureSpec:
+    """The spec a model was trained with, refused when this code would compute different channels."""
+    version = stored.get("version")
+    if version != FEATURE_VERSION:
+        raise ModelSpecError(f"model was trained with feature spec version {version}; this lidarmap computes "
+                             f"version {FEATURE_VERSION} (retrain with `lidarmap segment train`)", source)
+    try:
+        spec = FeatureSpec.from_dict(stored)
+    except (TypeError, ValueError) as exc:
+        raise ModelSpecError(f"invalid feature spec in model ({exc})", source) from None
+    if list(stored.get("channels", [])) != spec.channels:
+        raise ModelSpecError(f"model expects feature channels {stored.get('channels')} but this lidarmap computes "
+                             f"{spec.channels}", source)
+    return spec
+
+
+@dataclasses.dataclass
+class PointFeatures:
+    """Block-independent per-point values of one cloud (see :func:`point_features`)."""
+
+    xyz: np.ndarray  # float64 (N, 3), metres, in ``frame``
+    ground_z: np.ndarray  # float64 (N,), ground height under each point, same frame
+    values: np.ndarray  # float32 (N, C - 4): channels after x, y, z, hag
+    frame: LocalFrame
+    ground_source: str  # "class 2" or "estimated"
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+
+def metre_factors(cloud: PointCloud) -> np.ndarray:
+    """Factors that turn the cloud's CRS units into metres (1 when the CRS is unknown: metres are assumed)."""
+    crs = cloud.crs
+    if crs is None:
+        return np.ones(3)
+    subs = crs.sub_crs_list if crs.is_compound and crs.sub_crs_list else [crs]
+    horizontal = subs[0].axis_info[0].unit_conversion_factor if subs[0].axis_info else 1.0
+    vertical = horizontal
+    for sub in subs[1:]:
+        if sub.is_vertical and sub.axis_info:
+            vertical = sub.axis_info[0].unit_conversion_factor
+    return np.array([horizontal, horizontal, vertical], dtype=np.float64)
+
+
+def robust_unit(values: np.ndarray) -> np.ndarray:
+    """Centre on the median and scale by the 5-95 % spread, clipped to [-3, 3]: comparable across sensors."""
+    values = values.astype(np.float64)
+    if len(values) == 0:
+        return values.astype(np.float32)
+    lo, mid, hi = np.percentile(values, [5, 50, 95])
+    if hi - lo <= 0:
+        return np.zeros(len(values), np.float32)
+    return np.clip((values - mid) / (hi - lo), -3.0, 3.0).astype(np.float32)
+
+
+def ground_grid(xyz: np.ndarray, classification: np.ndarray | None, spec: FeatureSpec) -> tuple[GroundGrid, str]:
+    """The ground surface the features use, and where it came from."""
+    if spec.ground == "auto" and classification is not None:
+        is_ground = classification == GROUND_CLASS
+        if is_ground.sum() >= spec.min_ground_points:
+            return ground_from_points(xyz[is_ground, :2], xyz[is_ground, 2], spec.ground_cell), "class 2"
+    grid = estimate_ground(xyz[:, :2], xyz[:, 2], spec.ground_cell, spec.ground_max_window, spec.ground_slope,
+                           spec.ground_threshold)
+    return grid, "estimated"
+
+
+def _returns(cloud: PointCloud) -> np.ndarray:
+    n = len(cloud)
+    rn = cloud.attrs.get("return_number", np.ones(n, np.uint8)).astype(np.float32)
+    nr = cloud.attrs.get("number_of_returns", np.ones(n, np.uint8)).astype(np.float32)
+    rn, nr = np.maximum(rn, 1), np.maximum(nr, 1)  # 0 = unknown in some files: treat as a single return
+    nr = np.maximum(nr, rn)
+    return np.column_stack([nr == 1, rn == nr, rn / nr]).astype(np.float32)
+
+
+def _colour(cloud: PointCloud) -> np.ndarray:
+    rgb = cloud.rgb8()
+    if rgb is None or not rgb.any():
+        return np.zeros((len(cloud), 4), np.float32)
+    return np.column_stack([rgb.astype(np.float32) / 255.0 - 0.5, np.ones(len(cloud), np.float32)])
+
+
+def eigen_features(xyz: np.ndarray, k: int) -> np.ndarray:
+    """(N, 9) neighbourhood features of every point among ``xyz`` (see :data:`EIGEN_NAMES`)."""
+    k = min(k, len(xyz))
+    tree = cKDTree(xyz)
+    out = np.zeros((len(xyz), len(EIGEN_NAMES)), np.float32)
+    for start in range(0, len(xyz), CHUNK):
+        query = xyz[start:start + CHUNK]
+        dist, idx = tree.query(query, k=k, workers=-1)
+        dist, idx = dist.reshape(len(query), k), idx.reshape(len(query), k)
+        nb = xyz[idx]
+        centred = nb - nb.mean(axis=1, keepdims=True)
+        cov = np.einsum("nki,nkj->nij", centred, centred) / k
+        values, vectors = np.linalg.eigh(cov)  # ascending
+        values = np.maximum(values, 0.0)
+        l3, l2, l1 = values[:, 0], values[:, 1], values[:, 2] + 1e-12
+        normal_z = np.abs(vectors[:, 2, 0])
+        out[start:start + CHUNK] = np.column_stack([
+            (l1 - l2) / l1, (l2 - l3) / l1, l3 / l1, 1.0 - normal_z, normal_z, np.sqrt(l3),
+            np.ptp(nb[..., 2], axis=1), query[:, 2] - nb[..., 2].min(axis=1), dist[:, -1]])
+    return out
+
+
+def shape_channels(xyz: np.ndarray, spec: FeatureSpec) -> np.ndarray:
+    """(N, 4) planarity, scattering, verticality and scaled roughness of each point's neighbourhood."""
+    if len(xyz) < 3:
+        return np.zeros((len(xyz), 4), np.float32)
+    eig = eigen_features(xyz, spec.geometry_k)
+    pick = [EIGEN_NAMES.index(n) for n in ("planarity", "scattering", "verticality", "roughness")]
+    out = eig[:, pick]
+    out[:, 3] = np.clip(out[:, 3] / spec.roughness_scale, 0.0, 3.0)
+    return out
+
+
+def point_features(cloud: PointCloud, spec: FeatureSpec) -> PointFeatures:
+    """Block-independent features of every point of ``cloud`` (see the module doc)."""
+    metres = cloud.xyz * metre_factors(cloud)
+    frame = LocalFrame.around(metres) if len(cloud) else LocalFrame()
+    xyz = frame.to_local(metres)
+    grid, source = ground_grid(xyz, cloud.attrs.get("classification"), spec)
+    ground_z = grid.height_at(xyz[:, :2])
+    intensity = cloud.attrs.get("intensity")
+    columns = [robust_unit(intensity) if intensity is not None else np.zeros(len(cloud), np.float32)]
+    values = np.column_stack(columns + [_returns(cloud), shape_channels(xyz, spec)]
+                             + ([_colour(cloud)] if spec.use_rgb else []))
+    return PointFeatures(xyz, ground_z, values.astype(np.float32), frame, source)
+
+
+#: An augmentation: (xyz_local float32 (P, 3), hag float32 (P,)) -> the same, transformed.
+Transform = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def block_input(pf: PointFeatures, index: np.ndarray, centre: np.ndarray, spec: FeatureSpec,
+                transform: Transform | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Network input of the points ``index`` of a block centred (x, y) at ``centre`` (frame metres).
+
+    Returns block-centred xyz in metres (float32, z relative to the block's median ground) and the channel
+    matrix (float32, ``spec.channels``). ``transform`` (training augmentation) acts on xyz and height above ground
+    before the channels are assembled, so augmented and plain blocks go through the same code.
+    """
+    xyz = pf.xyz[index]
+    ground = pf.ground_z[index]
+    ref = np.array([centre[0], centre[1], np.median(ground) if len(ground) else 0.0])
+    local = (xyz - ref).astype(np.float32)
+    hag = (xyz[:, 2] - ground).astype(np.float32)
+    if transform is not None:
+        local, hag = transform(local, hag)
+    half = np.float32(spec.block_size / 2)
+    hag_channel = np.clip(hag / np.float32(spec.hag_scale), -1.0, 5.0)
+    channels = np.column_stack([local / half, hag_channel, pf.values[index]]).astype(np.float32)
+    return local, channels

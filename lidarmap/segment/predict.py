@@ -1,0 +1,234 @@
+"""Building probabilities for every point of a cloud, and the classes written back.
+
+PointNet++ inference runs on overlapping windows (stride ``block_size * (1 - overlap)``); each window feeds the
+network ``block_points`` of its points (all of them, padded by repeats, when it has fewer). A point's probability
+is the mean over every window that fed it; points that no window happened to feed (dense data: a window holds more
+points than the network takes) get the inverse-distance mean of their 3 nearest fed neighbours. Every point gets a
+probability, also in areas smaller than one block (one window covers them all).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+import os
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from lidarmap.io.pointcloud import PointCloud
+from lidarmap.segment.blocks import column_members, sample_indices, window_centres
+from lidarmap.segment.features import BUILDING_CLASS, PointFeatures, Transform, block_input, point_features
+from lidarmap.segment.modelfile import SegmentModel
+
+#: Class given to input building points that the model calls not-building (they are no longer trusted as 6).
+DEMOTED_CLASS = 1
+#: Extra dimension (float32) of predicted files holding each point's building probability.
+PROBABILITY_DIM = "building_probability"
+METHODS = ("pointnet2", "baseline")
+
+Report = Callable[[int, int], None]
+
+
+@dataclasses.dataclass(frozen=True)
+class PredictParams:
+    """How ``lidarmap segment predict`` runs (``[segment]`` table).
+
+    overlap (0.5): fraction by which neighbouring windows overlap (0.5 = stride of half a block, each point seen
+        by about 4 windows); 0 <= overlap < 1.
+    batch_size (32): windows per network call (larger batches spread the per-step cost of the sampling loop).
+    threshold (0.5): building probability at or above which a point becomes class 6.
+    union (False): keep input class-6 points as building whatever the model says.
+    seed (0): seeds the choice of points inside dense windows (same input + seed = same output).
+    rotations (1): test-time augmentation: every window is also fed turned by 360/rotations degrees about z
+        (rotations - 1 more times) and the probabilities are averaged; costs that many times the network time.
+    window_weight ("tent"): how the windows that saw a point are averaged: "tent" weighs each by how central the
+        point lies in it ((1 - |dx|/half)(1 - |dy|/half)), "uniform" equally.
+    threads (0): torch CPU threads; 0 = one per core.
+    device ("auto"): "cpu", "cuda" or "auto" (a GPU when there is one).
+    """
+
+    section = "segment"
+
+    overlap: float = 0.5
+    batch_size: int = 32
+    threshold: float = 0.5
+    union: bool = False
+    seed: int = 0
+    rotations: int = 1
+    window_weight: str = "tent"
+    threads: int = 0
+    device: str = "auto"
+
+    def __post_init__(self) -> None:
+        if self.window_weight not in ("tent", "uniform"):
+            raise ValueError("window_weight must be tent or uniform")
+        if self.rotations < 1:
+            raise ValueError("rotations must be at least 1")
+        if not 0.0 <= self.overlap < 1.0:
+            raise ValueError("overlap must be in [0, 1)")
+        if self.batch_size < 1:
+            raise ValueError("batch_size must be at least 1")
+        if not 0.0 <= self.threshold <= 1.0:
+            raise ValueError("threshold must be in [0, 1]")
+        if self.threads < 0:
+            raise ValueError("threads must be >= 0")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ValueError("device must be auto, cpu or cuda")
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+@contextlib.contextmanager
+def torch_threads(count: int) -> Iterator[None]:
+    """Use ``count`` torch CPU threads inside the block (0 = one per core), then restore the previous setting."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(count or os.cpu_count() or 1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+def rotation(angle_deg: float) -> Transform | None:
+    """A turn of the block about z (None for 0 degrees)."""
+    if angle_deg % 360 == 0:
+        return None
+    a = math.radians(angle_deg)
+    matrix = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
+                      np.float32)
+    return lambda xyz, hag: ((xyz @ matrix.T).astype(np.float32), hag)
+
+
+def window_weight(offset: np.ndarray, half: float, how: str) -> np.ndarray:
+    """Weight of a window's prediction for points at ``offset`` (N, 2) from its centre.
+
+    A point near a window's edge lacks half of its context; "tent" weights (1 - |dx|/half)(1 - |dy|/half) let the
+    windows in which the point lies centrally decide. "uniform" gives every window the same say.
+    """
+    if how == "uniform":
+        return np.ones(len(offset))
+    tent = np.clip(1.0 - np.abs(offset) / half, 1e-3, 1.0)
+    return tent[:, 0] * tent[:, 1]
+
+
+Window = tuple[np.ndarray, np.ndarray]  # (centre (2,), member indices)
+
+
+def plan_windows(pf: PointFeatures, model: SegmentModel, params: PredictParams) -> list[Window]:
+    """The non-empty windows (centre, member indices) that cover every point."""
+    spec = model.spec
+    centres = window_centres(pf.xyz[:, :2], spec.block_size, params.overlap)
+    members = column_members(cKDTree(pf.xyz[:, :2]), centres, spec.block_size / 2)
+    return [(c, m) for c, m in zip(centres, members) if len(m)]
+
+
+def windows_per_batch(params: PredictParams) -> int:
+    """Windows per network call (each is fed ``rotations`` times)."""
+    return max(1, params.batch_size // params.rotations)
+
+
+def window_batches(pf: PointFeatures, model: SegmentModel, params: PredictParams, windows: list[Window],
+                   rng: np.random.Generator) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """(indices (B, P), weights (B, P), xyz (B, P, 3), channels (B, P, C)) of successive batches of windows (each
+    window once per test-time rotation, with the same points)."""
+    spec = model.spec
+    turns = [rotation(360.0 * k / params.rotations) for k in range(params.rotations)]
+    per_batch = windows_per_batch(params)
+    for start in range(0, len(windows), per_batch):
+        batch = windows[start:start + per_batch]
+        index = [sample_indices(m, model.block_points, rng) for _, m in batch]
+        inputs = [block_input(pf, i, c, spec, turn) for i, (c, _) in zip(index, batch) for turn in turns]
+        weight = [window_weight(pf.xyz[i, :2] - c, spec.block_size / 2, params.window_weight)
+                  for i, (c, _) in zip(index, batch)]
+        index = np.repeat(np.stack(index), len(turns), axis=0)
+        weight = np.repeat(np.stack(weight), len(turns), axis=0)
+        yield index, weight, np.stack([x for x, _ in inputs]), np.stack([f for _, f in inputs])
+
+
+def spread_to_all(xyz: np.ndarray, fed: np.ndarray, prob: np.ndarray) -> np.ndarray:
+    """Probabilities of points not fed to the network: inverse-square-distance mean of the 3 nearest fed points."""
+    missing = np.flatnonzero(~fed)
+    if len(missing) == 0:
+        return prob
+    known = np.flatnonzero(fed)
+    k = min(3, len(known))
+    dist, near = cKDTree(xyz[known]).query(xyz[missing], k=k)
+    dist, near = dist.reshape(len(missing), k), near.reshape(len(missing), k)
+    weight = 1.0 / (dist**2 + 1e-4)
+    out = prob.copy()
+    out[missing] = (prob[known[near]] * weight).sum(1) / weight.sum(1)
+    return out
+
+
+def predict_pointnet2(cloud: PointCloud, model: SegmentModel, params: PredictParams = PredictParams(),
+                      report: Report | None = None) -> np.ndarray:
+    """Building probability (float32, N) of every point of ``cloud``."""
+    if len(cloud) == 0:
+        return np.zeros(0, np.float32)
+    pf = point_features(cloud, model.spec)
+    rng = np.random.default_rng(params.seed)
+    device = pick_device(params.device)
+    net = model.net.fused().to(device)
+    total = np.zeros(len(cloud))
+    count = np.zeros(len(cloud))
+    windows = plan_windows(pf, model, params)
+    n_batches = math.ceil(len(windows) / windows_per_batch(params))
+    with torch_threads(params.threads), torch.inference_mode():
+        for done, (index, weight, xyz, channels) in enumerate(window_batches(pf, model, params, windows, rng), 1):
+            logits = net(torch.from_numpy(xyz).to(device), torch.from_numpy(channels).to(device))
+            prob = torch.softmax(logits.float(), dim=-1)[..., 1].cpu().numpy()
+            # add.at touches only the batch's points (a bincount over all N points per batch is quadratic)
+            np.add.at(total, index.ravel(), (prob * weight).ravel())
+            np.add.at(count, index.ravel(), weight.ravel())
+            if report:
+                report(done, n_batches)
+    fed = count > 0
+    prob = np.divide(total, count, out=np.zeros(len(cloud)), where=fed)
+    return spread_to_all(pf.xyz, fed, prob).astype(np.float32)
+
+
+def predict(cloud: PointCloud, model: object, params: PredictParams = PredictParams(),
+            report: Report | None = None) -> np.ndarray:
+    """Building probabilities (float32, N) from a PointNet++ :class:`SegmentModel` or a baseline model."""
+    from lidarmap.segment.baseline import BaselineModel, predict_baseline
+
+    if isinstance(model, BaselineModel):
+        with torch_threads(params.threads):
+            return predict_baseline(cloud, model)
+    if isinstance(model, SegmentModel):
+        return predict_pointnet2(cloud, model, params, report)
+    raise TypeError(f"not a segmentation model: {type(model).__name__}")
+
+
+def apply_classes(classification: np.ndarray, probability: np.ndarray, threshold: float = 0.5,
+                  union: bool = False) -> np.ndarray:
+    """Output classes: building where ``probability >= threshold``; other points keep their class, except input
+    buildings the model rejects, which become :data:`DEMOTED_CLASS` (1) -- unless ``union`` keeps them as 6."""
+    building = probability >= threshold
+    if union:
+        building |= classification == BUILDING_CLASS
+    out = classification.copy()
+    out[(classification == BUILDING_CLASS) & ~building] = DEMOTED_CLASS
+    out[building] = BUILDING_CLASS
+    return out
+
+
+def segmented_cloud(cloud: PointCloud, probability: np.ndarray, params: PredictParams = PredictParams()) -> PointCloud:
+    """The input cloud (every point, same order, every attribute) with the classes of :func:`apply_classes` and
+    the extra dimension :data:`PROBABILITY_DIM`. A cloud without classification counts as class 0."""
+    classification = cloud.attrs.get("classification")
+    if classification is None:
+        classification = np.zeros(len(cloud), np.uint8)
+    attrs = {**cloud.attrs,
+             "classification": apply_classes(classification, probability, params.threshold, params.union),
+             PROBABILITY_DIM: np.asarray(probability, np.float32)}
+    extra = [*cloud.extra_dims, *([] if PROBABILITY_DIM in cloud.extra_dims else [PROBABILITY_DIM])]
+    return PointCloud(cloud.xyz, attrs, cloud.crs, extra, cloud.source)
