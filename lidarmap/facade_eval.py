@@ -29,14 +29,15 @@ from shapely.geometry import Polygon, box
 from lidarmap.model import Building, ElementKind, Facade
 
 
-def _iou(a: Polygon, b: Polygon) -> float:
+def polygon_iou(a: Polygon, b: Polygon) -> float:
+    """Intersection over union of two polygons (0 when both are empty)."""
     union = a.union(b).area
     return a.intersection(b).area / union if union > 0 else 0.0
 
 
 def greedy_match(pred: list[Polygon], truth: list[Polygon], thr: float = 0.5) -> list[tuple[int, int, float]]:
     """One-to-one matches (pred index, truth index, IoU) with IoU >= ``thr``, best IoU first."""
-    pairs = sorted(((_iou(p, t), i, j) for i, p in enumerate(pred) for j, t in enumerate(truth)), reverse=True)
+    pairs = sorted(((polygon_iou(p, t), i, j) for i, p in enumerate(pred) for j, t in enumerate(truth)), reverse=True)
     used_p: set[int] = set()
     used_t: set[int] = set()
     out = []
@@ -142,7 +143,7 @@ def evaluate_facades(buildings: list[Building], truth, campaign_id: int, registe
                 for i, p in enumerate(pred):
                     if i in matched_p:
                         continue
-                    if any(not visible[j] and _iou(p, true[j].polygon) > 0.1 for j in range(len(true))):
+                    if any(not visible[j] and polygon_iou(p, true[j].polygon) > 0.1 for j in range(len(true))):
                         continue
                     c["fp"] += 1
                 c["fn"] += sum(1 for j in range(len(true)) if visible[j] and j not in matched_t)

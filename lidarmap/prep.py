@@ -31,10 +31,7 @@ import dataclasses
 import io
 import json
 import math
-import os
 import re
-import shutil
-import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -47,7 +44,7 @@ from shapely.geometry.base import BaseGeometry
 
 from lidarmap.errors import ConfigError, CRSError, InputError
 from lidarmap.frame import LocalFrame
-from lidarmap.io.atomic import write_text_atomic
+from lidarmap.io.atomic import atomic_dir, write_text_atomic
 from lidarmap.io.crs import describe_crs, same_crs
 from lidarmap.io.footprints import Footprints, check_overlap
 from lidarmap.io.las import iter_las, read_header, resolve_crs, write_las
@@ -785,9 +782,7 @@ def write_prep(out_dir: str | Path, result: PrepResult,
     refused.
     """
     out = check_out_dir(out_dir)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-    try:
+    with atomic_dir(out) as tmp:
         (tmp / "buildings").mkdir()
         rows, taken = [], set()
         for building in result.buildings:
@@ -816,30 +811,7 @@ def write_prep(out_dir: str | Path, result: PrepResult,
             "dropped": result.dropped, "seconds": round(result.seconds, 3),
         }
         write_text_atomic(tmp / _MARKER, json.dumps(summary, indent=2))
-        _swap_into_place(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out
-
-
-def _swap_into_place(tmp: Path, out: Path) -> None:
-    if not out.exists():
-        os.replace(tmp, out)
-        return
-    if not any(out.iterdir()):
-        out.rmdir()
-        os.replace(tmp, out)
-        return
-    old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-    old.rmdir()
-    os.replace(out, old)
-    try:
-        os.replace(tmp, out)
-    except BaseException:
-        os.replace(old, out)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
 
 
 def read_prep_index(out_dir: str | Path) -> list[dict[str, Any]]:

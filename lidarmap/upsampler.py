@@ -24,9 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import pickle
 import typing
-import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +37,7 @@ from torch.nn import functional as F
 from lidarmap.densify import _knn, flat_points, local_spacing
 from lidarmap.errors import InputError
 from lidarmap.io.atomic import atomic_path
+from lidarmap.io.torchfile import read_torch_file
 
 __all__ = ["UpsamplerArch", "PatchProjector", "LearnedUpsampler", "patch_inputs", "load_upsampler",
            "save_upsampler", "DEFAULT_WEIGHTS", "FORMAT"]
@@ -167,14 +166,7 @@ def save_upsampler(path: str | Path, net: PatchProjector, training: dict[str, An
 
 def load_upsampler(path: str | Path | None = None) -> LearnedUpsampler:
     """Load a model file (the shipped weights when ``path`` is None); problems are one-line InputErrors."""
-    path = Path(path) if path is not None else DEFAULT_WEIGHTS
-    if not path.exists():
-        hint = " (the shipped weights are missing: run scripts/train_upsampler.py)" if path == DEFAULT_WEIGHTS else ""
-        raise InputError(f"upsampler weights not found{hint}", path)
-    try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, zipfile.BadZipFile, RuntimeError, EOFError, OSError, ValueError) as exc:
-        raise InputError(f"not a readable model file ({' '.join(str(exc).split())[:160]})", path) from None
+    path, data = read_torch_file(path, DEFAULT_WEIGHTS, "upsampler weights", "scripts/train_upsampler.py")
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(f"not a {FORMAT} model file", path)
     if data.get("version") != FORMAT_VERSION:

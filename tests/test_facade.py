@@ -19,6 +19,7 @@ from shapely.geometry import Point, Polygon, box
 from lidarmap.errors import InputError, LidarmapError
 from lidarmap.facade import (FacadeParams, extract_buildings, fit_facade_frame, fit_layers, fit_rectangle,
                              occlusion_mask, uncertainty_eq1, window_uncertainty_eq3)
+from lidarmap.facade_eval import greedy_match, polygon_iou
 from lidarmap.facade_layers import depth_grid
 from lidarmap.io.footprints import Footprints
 from lidarmap.io.pointcloud import PointCloud
@@ -150,23 +151,6 @@ def make_scene(rotation_deg: float = 30.0, offset=(412000.0, 5651000.0, 55.0), v
 def _facade_rect(frame: FacadeFrame, corners: np.ndarray) -> Polygon:
     st = frame.to_facade(corners)[:, :2]
     return box(st[:, 0].min(), st[:, 1].min(), st[:, 0].max(), st[:, 1].max())
-
-
-def _iou(a: Polygon, b: Polygon) -> float:
-    union = a.union(b).area
-    return a.intersection(b).area / union if union > 0 else 0.0
-
-
-def _match(pred: list[Polygon], truth: list[Polygon], thr: float = 0.5) -> list[tuple[int, int, float]]:
-    pairs = sorted(((_iou(p, t), i, j) for i, p in enumerate(pred) for j, t in enumerate(truth)), reverse=True)
-    used_p, used_t, out = set(), set(), []
-    for iou, i, j in pairs:
-        if iou < thr or i in used_p or j in used_t:
-            continue
-        used_p.add(i)
-        used_t.add(j)
-        out.append((i, j, iou))
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -376,7 +360,7 @@ def test_extract_scene_windows_recovered(scene, extracted):
     f = extracted[0][0].facades[0]
     wins = [e for e in f.elements if e.kind is ElementKind.WINDOW]
     truth_rects = [_facade_rect(f.frame, w) for w in truth["windows"]]
-    matches = _match([w.polygon for w in wins], truth_rects)
+    matches = greedy_match([w.polygon for w in wins], truth_rects)
     precision = len(matches) / max(1, len(wins))
     recall = len(matches) / len(truth_rects)
     assert precision >= 0.9 and recall >= 0.9, (precision, recall)
@@ -386,7 +370,7 @@ def test_extract_scene_windows_recovered(scene, extracted):
         assert 0.0 <= wins[i].uncertainty < 0.3
     doors = [e for e in f.elements if e.kind is ElementKind.DOOR]
     door_truth = _facade_rect(f.frame, truth["door"])
-    assert any(_iou(d.polygon, door_truth) > 0.7 for d in doors), [d.polygon.bounds for d in doors]
+    assert any(polygon_iou(d.polygon, door_truth) > 0.7 for d in doors), [d.polygon.bounds for d in doors]
     structures = [e for e in f.elements if e.kind is ElementKind.STRUCTURE]
     balcony = _facade_rect(f.frame, truth["balcony"])
     assert any(s.polygon.intersection(balcony).area > 0.5 * balcony.area for s in structures)
@@ -404,7 +388,7 @@ def test_extract_scene_van_occlusion(scene, extracted):
     hidden = _facade_rect(f.frame, truth["hidden_windows"][0])
     for e in f.elements:
         if e.kind in (ElementKind.WINDOW, ElementKind.DOOR):
-            assert _iou(e.polygon, hidden) < 0.1, e.polygon.bounds
+            assert polygon_iou(e.polygon, hidden) < 0.1, e.polygon.bounds
     # the evidence: the hidden window's cells were not seen and got no window vote
     ev = f.evidence
     s0, t0, s1, t1 = hidden.bounds
@@ -420,7 +404,7 @@ def test_extract_scene_without_interior_returns(scene):
     f = buildings[0].facades[0]
     wins = [e.polygon for e in f.elements if e.kind is ElementKind.WINDOW]
     truth_rects = [_facade_rect(f.frame, w) for w in truth["windows"]]
-    matches = _match(wins, truth_rects)
+    matches = greedy_match(wins, truth_rects)
     assert len(matches) / len(truth_rects) >= 0.9 and len(matches) / max(1, len(wins)) >= 0.9
 
 
@@ -445,7 +429,7 @@ def test_observe_known_facade_with_another_campaign(scene, extracted):
     assert abs(f2.layer(f2.main_layer).mu) < 0.005  # the same wall, seen again
     hidden = _facade_rect(f1.frame, scene[3]["hidden_windows"][0])
     wins = [e for e in f2.elements if e.kind is ElementKind.WINDOW]
-    assert any(_iou(w.polygon, hidden) > 0.7 for w in wins)
+    assert any(polygon_iou(w.polygon, hidden) > 0.7 for w in wins)
     s0, t0, s1, t1 = hidden.bounds
     cells = (slice(int(t0 / 0.1) + 1, int(t1 / 0.1) - 1), slice(int(s0 / 0.1) + 1, int(s1 / 0.1) - 1))
     assert f1.evidence.seen[cells].mean() < 0.1 and f2.evidence.seen[cells].mean() > 0.9

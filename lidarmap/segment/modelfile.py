@@ -16,8 +16,8 @@ from typing import Any
 
 import torch
 
-from lidarmap.errors import InputError
 from lidarmap.io.atomic import atomic_path
+from lidarmap.io.torchfile import read_torch_file
 from lidarmap.segment.features import FeatureSpec, ModelSpecError, check_spec
 from lidarmap.segment.metrics import CLASS_NAMES
 from lidarmap.segment.pointnet2 import Arch, PointNet2Seg
@@ -106,12 +106,5 @@ def model_from_dict(data: dict[str, Any], source: str | None = None,
 
 def load_model(path: str | Path | None = None, expected_spec: FeatureSpec | None = None) -> SegmentModel:
     """Load a model file (the shipped default when ``path`` is None) onto the CPU."""
-    path = Path(path) if path is not None else DEFAULT_MODEL
-    if not path.exists():
-        hint = " (the shipped model is missing: run scripts/train_segmentation.py)" if path == DEFAULT_MODEL else ""
-        raise InputError(f"model file not found{hint}", path)
-    try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - torch.load raises many kinds (struct.error, UnpicklingError, ...)
-        raise InputError(f"not a readable model file ({' '.join(str(exc).split())[:160]})", path) from None
+    path, data = read_torch_file(path, DEFAULT_MODEL, "model file", "scripts/train_segmentation.py")
     return model_from_dict(data, str(path), expected_spec)
