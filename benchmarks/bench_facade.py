@@ -27,9 +27,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 from test_facade import (BALCONY_RAIL, BALCONY_SLAB, DOOR, DOOR_RECESS, INTERIOR_Y, SENSOR_Z, VAN, WALL,  # noqa: E402
-                         _box_hits, _match, _plane_hits, _windows)
+                         _box_hits, _plane_hits, _windows)
 
 from lidarmap.facade import FacadeParams, extract_buildings  # noqa: E402
+from lidarmap.facade_eval import greedy_match  # noqa: E402
 from lidarmap.io.footprints import Footprints  # noqa: E402
 from lidarmap.io.pointcloud import PointCloud  # noqa: E402
 from lidarmap.io.trajectory import Trajectory  # noqa: E402
@@ -148,7 +149,7 @@ def evaluate(buildings, truth) -> dict:
         for w in t["windows"]:
             st = f.frame.to_facade(w)[:, :2]
             rects.append(box(st[:, 0].min(), st[:, 1].min(), st[:, 0].max(), st[:, 1].max()))
-        m = _match(wins, rects)
+        m = greedy_match(wins, rects)
         tp += len(m)
         fp += len(wins) - len(m)
         fn += len(rects) - len(m)

@@ -60,6 +60,7 @@ def cubes(ax, grid, origin, colour: str) -> None:
 
 
 def frame_axes(ax, extent: np.ndarray, title: str) -> None:
+    extent = tuple(float(e) for e in extent)  # a copy: matplotlib 3.11's set_box_aspect rescales its array in place
     ax.set_xlim(0, extent[0])
     ax.set_ylim(0, extent[1])
     ax.set_zlim(0, extent[2])

@@ -1,7 +1,8 @@
 """Run every benchmark and write docs/benchmarks.md: ``python benchmarks/run_all.py [NAME ...]``.
 
 Each ``benchmarks/bench_*.py`` is run as its own process (so timings do not share warm caches) and prints one
-markdown section to stdout: its figures next to the named baseline measured in the same run. This script adds the
+markdown section to stdout: its figures next to the named baseline measured in the same run. ``delft_before_after.py``
+(the whole pipeline on real AHN3 data, with a picture in ``docs/images/``) runs last. This script adds the
 machine and the date, and keeps the sections of benchmarks that were not re-run.
 """
 
@@ -67,7 +68,7 @@ def run(script: Path) -> str:
 
 
 def main(names: list[str]) -> None:
-    scripts = sorted((ROOT / "benchmarks").glob("bench_*.py"))
+    scripts = sorted((ROOT / "benchmarks").glob("bench_*.py")) + [ROOT / "benchmarks" / "delft_before_after.py"]
     if names:
         scripts = [s for s in scripts if s.stem.removeprefix("bench_") in names or s.stem in names]
     sections = existing_sections()

@@ -297,7 +297,7 @@ def cli_files(tmp_path_factory: pytest.TempPathFactory, tiny_model) -> dict[str,
 def test_cli_predict_keeps_order_count_and_writes_probability(tmp_path: Path, cli_files) -> None:
     out = tmp_path / "out"
     config = tmp_path / "c.toml"
-    config.write_text("[segment]\noverlap = 0.25\nunion = true\n")
+    config.write_text("[segment]\noverlap = 0.5\nunion = true\n")
     result = run_cli("segment", "predict", str(cli_files["scene"]), "-o", str(out), "--model",
                      str(cli_files["model"]), "--config", str(config), "--seed", "1")
     assert result.returncode == 0, result.stderr

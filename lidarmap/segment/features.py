@@ -183,21 +183,30 @@ def eigen_features(xyz: np.ndarray, k: int) -> np.ndarray:
     """(N, 9) neighbourhood features of every point among ``xyz`` (see :data:`EIGEN_NAMES`)."""
     k = min(k, len(xyz))
     tree = cKDTree(xyz)
-    out = np.zeros((len(xyz), len(EIGEN_NAMES)), np.float32)
+    out = np.empty((len(xyz), len(EIGEN_NAMES)), np.float32)
     for start in range(0, len(xyz), CHUNK):
         query = xyz[start:start + CHUNK]
         dist, idx = tree.query(query, k=k, workers=-1)
         dist, idx = dist.reshape(len(query), k), idx.reshape(len(query), k)
         nb = xyz[idx]
         centred = nb - nb.mean(axis=1, keepdims=True)
-        cov = np.einsum("nki,nkj->nij", centred, centred) / k
+        cov = np.matmul(centred.transpose(0, 2, 1), centred) / k  # batched 3x3: half the time of einsum
         values, vectors = np.linalg.eigh(cov)  # ascending
         values = np.maximum(values, 0.0)
         l3, l2, l1 = values[:, 0], values[:, 1], values[:, 2] + 1e-12
         normal_z = np.abs(vectors[:, 2, 0])
-        out[start:start + CHUNK] = np.column_stack([
-            (l1 - l2) / l1, (l2 - l3) / l1, l3 / l1, 1.0 - normal_z, normal_z, np.sqrt(l3),
-            np.ptp(nb[..., 2], axis=1), query[:, 2] - nb[..., 2].min(axis=1), dist[:, -1]])
+        z = np.ascontiguousarray(nb[..., 2])
+        z_min = z.min(axis=1)
+        block = out[start:start + CHUNK]  # written column by column: no (N, 9) float64 temporary
+        block[:, 0] = (l1 - l2) / l1
+        block[:, 1] = (l2 - l3) / l1
+        block[:, 2] = l3 / l1
+        block[:, 3] = 1.0 - normal_z
+        block[:, 4] = normal_z
+        block[:, 5] = np.sqrt(l3)
+        block[:, 6] = z.max(axis=1) - z_min
+        block[:, 7] = query[:, 2] - z_min
+        block[:, 8] = dist[:, -1]
     return out
 
 

@@ -37,8 +37,9 @@ Report = Callable[[int, int], None]
 class PredictParams:
     """How ``lidarmap segment predict`` runs (``[segment]`` table).
 
-    overlap (0.5): fraction by which neighbouring windows overlap (0.5 = stride of half a block, each point seen
-        by about 4 windows); 0 <= overlap < 1.
+    overlap (0.25): fraction by which neighbouring windows overlap (0.25 = stride of three quarters of a block,
+        each point seen by about 1.8 windows); 0 <= overlap < 1. Chosen on the training recipe's validation split:
+        0.25 scored OA 0.9861 / building IoU 0.9541 against 0.9858 / 0.9530 at 0.5, in 56 % of the time.
     batch_size (32): windows per network call (larger batches spread the per-step cost of the sampling loop).
     threshold (0.5): building probability at or above which a point becomes class 6.
     union (False): keep input class-6 points as building whatever the model says.
@@ -53,7 +54,7 @@ class PredictParams:
 
     section = "segment"
 
-    overlap: float = 0.5
+    overlap: float = 0.25
     batch_size: int = 32
     threshold: float = 0.5
     union: bool = False
