@@ -17,11 +17,12 @@ from scipy.stats import norm
 from shapely.geometry import box
 
 from lidarmap.facade import FacadeParams, window_uncertainty_eq3
+from lidarmap.facade_eval import polygon_iou
 from lidarmap.facade_windows import HOLE, OBJECT, OCCLUDED
 from lidarmap.model import BuildingMap, Campaign, Element, ElementKind, Layer
 from lidarmap.refine import (RefineParams, add_aerial, fuse_gaussians, match_layers, refine_map, refit_rectangle,
                              weighted_window_uncertainty)
-from test_facade import CRS_UTM, _facade_rect, _iou, make_scene
+from test_facade import CRS_UTM, _facade_rect, make_scene
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Eq. (4)-(7)
@@ -145,8 +146,8 @@ def test_hidden_window_appears_with_finite_uncertainty(synthetic_maps):
     first, _, m1, m2 = synthetic_maps
     f1, f2 = m1.buildings["B1"].facades[0], m2.buildings["B1"].facades[0]
     hidden = _facade_rect(f2.frame, first[3]["hidden_windows"][0])
-    assert not any(_iou(e.polygon, hidden) > 0.1 for e in _openings(f1).values())
-    found = [e for e in _openings(f2).values() if _iou(e.polygon, hidden) > 0.8]
+    assert not any(polygon_iou(e.polygon, hidden) > 0.1 for e in _openings(f1).values())
+    found = [e for e in _openings(f2).values() if polygon_iou(e.polygon, hidden) > 0.8]
     assert len(found) == 1 and found[0].kind is ElementKind.WINDOW and found[0].campaigns == [2]
     assert math.isfinite(found[0].uncertainty) and 0.0 <= found[0].uncertainty < 0.2
     assert found[0].element_id not in _openings(f1)  # a fresh id
