@@ -151,25 +151,26 @@ def report(args, truth, rows, maps, pooled_eval, pooled_stats, pooled_s, pooled_
           f"visible, load average {load[0]:.1f} before / {load[1]:.1f} after (shared machine: timings are noisy; "
           f"update and from-scratch of a campaign are timed back to back).\n")
     print("Windows: IoU >= 0.5 against truth windows at least 90 % visible to any campaign so far, file coordinates. "
-          "Offset: mean distance of the façades' corners to the true wall (it includes the campaigns' "
+          "Structures (balconies, pilasters): the same rule on their outlines' bounding boxes. Offset: mean distance of the façades' corners to the true wall (it includes the campaigns' "
           "misregistration, which fusion averages). σ: mean main-layer σ (eq. 7 after fusion). ε: mean window/door "
           "uncertainty as stored; 'ε (w)' recomputes every window's weighted eq. (3) from the evidence, the same "
           "definition for single-campaign and refined maps. Unknown: total area of unknown regions (m²) on all "
           "façades; 'old façades' only on the façades the previous map held (new façades add new territory).\n")
     print("### Refined map after each campaign\n")
-    print("| after | window P | window R | window F1 | matched IoU | doors tp/fp/fn | offset mean cm | σ mm | ε | "
-          "ε (w) | unknown m² | unknown on old façades m² | façades | update s | from scratch s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| after | window P | window R | window F1 | matched IoU | doors tp/fp/fn | structures P / R | offset mean cm | "
+          "σ mm | ε | ε (w) | unknown m² | unknown on old façades m² | façades | update s | from scratch s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     prev = None
     for r, m in zip(rows, maps):
         ev, st = r["refined"], r["stats"]
-        w, d = ev["window"], ev["door"]
+        w, d, sv = ev["window"], ev["door"], ev["structure"]
         old = "–"
         if prev is not None:
             before, after = _facades(prev), _facades(m)
             old = f"{sum(_unknown(before[k]) for k in before):.1f} → {sum(_unknown(after[k]) for k in before):.1f}"
         print(f"| {r['id']} | {w['precision']:.3f} | {w['recall']:.3f} | {w['f1']:.3f} | {ev['window_mean_iou']:.3f} | "
-              f"{d['tp']}/{d['fp']}/{d['fn']} | {100 * ev['offset_mean']:.2f} | {1000 * st['sigma_mean']:.2f} | "
+              f"{d['tp']}/{d['fp']}/{d['fn']} | {sv['precision']:.2f} / {sv['recall']:.2f} | "
+              f"{100 * ev['offset_mean']:.2f} | {1000 * st['sigma_mean']:.2f} | "
               f"{st['mean_uncertainty']:.3f} | {r['weps']:.3f} | {st['unknown_area']:.1f} | {old} | {st['facades']} | "
               f"{r['refine_s']:.1f} | {r['scratch_s']:.1f} |")
         prev = m

@@ -105,8 +105,8 @@ class FacadeParams:
         structure_min_offset (0.05): layers further than this from the main one carry objects (proud: STRUCTURE;
             recessed: DOOR, WINDOW or STRUCTURE).
         surface_max_sigma (0.05): a recessed object whose depths spread more than this (robust σ) is clutter
-            (reveals, mixed cells, interiors seen through glass), not a surface: it stays a STRUCTURE, never a door
-            leaf or a recessed window.
+            (reveals, mixed cells, interiors seen through glass), not a surface: it is dropped (neither a door leaf,
+            a recessed window nor a structure).
         layer_cell_share (0.2): a cell shows the front-most layer holding at least this share (and 2) of its
             points (the main layer: 2 points): the wall hides interior surfaces seen through a window behind it, a
             balcony hides the wall.
@@ -748,6 +748,8 @@ def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, 
                     kind = ElementKind.DOOR
                 elif opening and params.recessed_windows and not (on_ground and h >= params.door_min_height):
                     kind = ElementKind.WINDOW
+                elif spread > params.surface_max_sigma:
+                    continue  # recessed clutter (reveals, mixed cells, interiors seen through glass): no surface
                 if kind is not ElementKind.STRUCTURE:
                     vals = np.where(cmask, HOLE, np.where(values == OCCLUDED, OCCLUDED, OBJECT))
                     rect, unc = fit_rectangle(cmask, vals, params)

@@ -5,12 +5,13 @@ model). Matching rules:
 
 * an extracted façade matches the truth façade of the same building (footprint id = truth building id) whose
   normal is within 10° and whose plane passes within 1 m of the extracted façade's centre;
-* a window/door matches a truth one of the same kind at IoU >= ``iou`` in the truth façade's (s, t) (greedy, best
+* a window/door/structure matches a truth one of the same kind at IoU >= ``iou`` in the truth façade's (s, t) (greedy, best
   IoU first). Only truth openings with ``visible_fraction[campaign] >= min_visible`` count (true positives and false
   negatives); predictions on less visible truth openings (IoU > 0.1) count neither way. Truth façades that no
   extracted façade matched contribute their visible openings as false negatives. For a map refined by several
   campaigns pass ``campaigns``: an opening is visible when the cells seen by *any* of them (the truth's
-  per-campaign ``seen`` grids, OR-ed) cover ``min_visible`` of it;
+  per-campaign ``seen`` grids, OR-ed) cover ``min_visible`` of it. Structures (balconies, pilasters) are scored
+  by the same rules on the bounding boxes of their outlines;
 * the plane offset error of a matched façade is the mean distance of its extent corners (on d = 0) to the truth
   plane, the angle error the angle between normals.
 
@@ -27,6 +28,9 @@ import numpy as np
 from shapely.geometry import Polygon, box
 
 from lidarmap.model import Building, ElementKind, Facade
+
+#: Element kinds scored against the truth (unknown regions are scored by area, see :func:`map_statistics`).
+SCORED_KINDS = ("window", "door", "structure")
 
 
 def polygon_iou(a: Polygon, b: Polygon) -> float:
@@ -103,7 +107,7 @@ def evaluate_facades(buildings: list[Building], truth, campaign_id: int, registe
     def vis(e) -> float:
         return union.get(e.id, 0.0) if union is not None else e.visible_fraction.get(campaign_id, 0.0)
 
-    counts = {k: {"tp": 0, "fp": 0, "fn": 0} for k in ("window", "door")}
+    counts = {k: {"tp": 0, "fp": 0, "fn": 0} for k in SCORED_KINDS}
     ious: list[float] = []
     offsets: list[float] = []
     angles: list[float] = []
@@ -115,7 +119,7 @@ def evaluate_facades(buildings: list[Building], truth, campaign_id: int, registe
         for f in b.facades:
             n_facades += 1
             tf = match_facade(f, tb.facades, register) if tb is not None else None
-            preds = [e for e in f.elements if e.kind in (ElementKind.WINDOW, ElementKind.DOOR)]
+            preds = [e for e in f.elements if e.kind.value in SCORED_KINDS]
             if tf is None:
                 for e in preds:
                     counts[e.kind.value]["fp"] += 1
@@ -127,7 +131,7 @@ def evaluate_facades(buildings: list[Building], truth, campaign_id: int, registe
                 corners = register(corners)
             offsets.append(float(np.mean(np.abs(tf.to_facade(corners)[:, 2]))))
             angles.append(math.degrees(math.acos(min(1.0, abs(float(tf.normal @ f.frame.normal))))))
-            for kind in ("window", "door"):
+            for kind in SCORED_KINDS:
                 pred = [_to_truth_rect(f, e.polygon, tf, register) for e in preds if e.kind.value == kind]
                 true = [e for e in tf.elements if e.kind == kind]
                 visible = [vis(e) >= min_visible for e in true]

@@ -30,7 +30,9 @@ Refinement of one stored façade by one campaign (:func:`refine_facade`), in the
    window votes weigh for, object votes against, occluded pixels nothing); ε is that weighted ratio; sides below the
    cell size are the campaign-weighted mean of the matched shapes' sides on the chosen lines. A window whose ε
    exceeds ``max_window_uncertainty`` on the fused votes (campaigns saw wall across it) is dropped. Structures: the
-   pixels most campaigns that saw them saw as the object; ε the point-weighted mean. Pixels claimed by objects on
+   pixels most campaigns that saw them saw as the object; ε the point-weighted mean. The same vote judges a stored
+   structure the new campaign saw but did not find (dropped when outvoted) and a new one earlier campaigns saw no
+   sign of, so clutter seen once (reveals, interiors behind glass) does not pile up campaign after campaign. Pixels claimed by objects on
    two layers go to the one with the lower ε.
 6. **Unknown regions** lose the pixels any campaign saw as wall (``object_votes`` > 0) or a changed opening covers;
    new ones are added only where the grid grew, so a façade's unknown area never grows.
@@ -659,15 +661,23 @@ def _fuse_structures(old: list[Element], new: list[Element], votes: _Votes, ids:
                      min_area: float) -> tuple[list[Element], set[int]]:
     out: list[Element] = []
     changed: set[int] = set()
+
+    def outvoted(e: Element) -> bool:
+        """Found by fewer than ``structure_vote`` of the campaigns that saw its place (median over its cells)."""
+        cells = votes.grid.raster(e.polygon)
+        return bool(cells.any()) and _weight(e) < params.structure_vote * float(np.median(votes.seen[cells]))
+
     for oi, ni in _clusters(old, new, lambda e: e.layer_id, params):
         olds, news = [old[i] for i in oi], [new[j] for j in ni]
-        if not news:
-            out.extend(olds)
+        if not news:  # not found again: kept unchanged unless the campaigns that saw its place outvote it
+            out.extend(o for o in olds if not votes.seen_new[votes.grid.raster(o.polygon)].any()
+                       or not outvoted(o))
             continue
-        if not olds:
-            e = dataclasses.replace(news[0], element_id=ids())
-            out.append(e)
-            changed.add(e.element_id)
+        if not olds:  # new: kept as found unless earlier campaigns saw its place without it
+            if not outvoted(news[0]):
+                e = dataclasses.replace(news[0], element_id=ids())
+                out.append(e)
+                changed.add(e.element_id)
             continue
         keep_id = _keeper(olds).element_id
         merged = _merge_structure(olds + news, keep_id, votes, params, min_area)

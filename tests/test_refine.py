@@ -234,6 +234,36 @@ def test_layer_conflict_goes_to_the_lower_uncertainty():
     assert 3 not in {e.element_id for e in _resolve_layer_conflicts([balcony, swallowed], {3}, RefineParams(), 0.1)}
 
 
+def test_structures_found_by_a_minority_of_the_campaigns_that_saw_them_are_dropped():
+    from lidarmap.refine import _fuse_structures, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 60))  # 6 m x 4 m, 10 cm cells
+
+    def votes(seen: int, seen_new: bool) -> _Votes:
+        zeros = np.zeros(grid.shape, np.int32)
+        return _Votes(grid, zeros, zeros, np.full(grid.shape, seen, np.int32),
+                      np.full(grid.shape, int(seen_new), np.int32), np.ones(grid.shape, bool))
+
+    balcony = Element(1, ElementKind.STRUCTURE, box(0.5, 0.5, 2.5, 1.5), layer_id=3, uncertainty=0.05,
+                      campaigns=[1, 2])
+    reveal = Element(2, ElementKind.STRUCTURE, box(4.0, 2.0, 4.6, 2.4), layer_id=4, uncertainty=0.6, campaigns=[2])
+
+    def fuse(old, new, v):
+        kept, _ = _fuse_structures(old, new, v, _Ids(old + new), RefineParams(), 0.1)
+        return kept
+
+    # campaign 3 saw both places and found neither: the reveal (1 of 3) is outvoted, the balcony (2 of 3) stays
+    kept = fuse([balcony, reveal], [], votes(3, True))
+    assert [e.element_id for e in kept] == [1] and kept[0] is balcony
+    # a campaign that did not see them changes nothing
+    assert [e.element_id for e in fuse([balcony, reveal], [], votes(2, False))] == [1, 2]
+    # a new shape where two earlier campaigns saw nothing is not added; where only one did, it is
+    new = Element(0, ElementKind.STRUCTURE, box(4.0, 0.5, 4.8, 1.0), layer_id=5, uncertainty=0.4, campaigns=[3])
+    assert fuse([], [new], votes(3, True)) == []
+    [added] = fuse([], [new], votes(2, True))
+    assert added.polygon.equals(new.polygon) and added.campaigns == [3]
+
+
 def test_params_section_and_validation():
     from lidarmap.config import resolve
     from lidarmap.errors import ConfigError

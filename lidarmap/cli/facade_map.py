@@ -245,7 +245,7 @@ def update_command(
                                               dir_okay=False),
     aerial: Optional[Path] = typer.Option(None, "--aerial", help="Aerial scan (LAS/LAZ): adds roof planes.",
                                           dir_okay=False),
-    footprints: Optional[Path] = typer.Option(None, "--footprints", help="Building footprints (GeoJSON); "
+    footprints: Optional[Path] = typer.Option(None, "--footprints", "-f", help="Building footprints (GeoJSON); "
                                               "optional with --aerial (default: the map's buildings).",
                                               dir_okay=False),
     id_field: Optional[str] = typer.Option(None, "--id-field", help="Footprint property holding the building id "
