@@ -34,7 +34,7 @@ from lidarmap.prep import PrepParams  # noqa: E402
 from lidarmap.voxel import read_voxels, voxelize_naive  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data" / "ahn3_delft"
+DATA = Path(os.environ.get("LIDARMAP_DATA", ROOT.parent / "shared" / "data")) / "ahn3_delft"
 IMAGE = ROOT / "docs" / "images" / "delft_before_after.png"
 
 

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+#: ``../shared/data`` beside the checkout; ``LIDARMAP_DATA`` points elsewhere (a clone in another folder).
+SHARED_DATA = Path(os.environ.get("LIDARMAP_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 
 
 def shared_file(relative: str) -> Path:
