@@ -16,12 +16,12 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from lidarmap.cli.common import ConfigOption, SeedOption, handle_errors, params_from, progress, table_console
+from lidarmap.cli.common import (ConfigOption, CrsOption, FootprintsOption, IdFieldOption, SeedOption, handle_errors,
+                                 params_from, progress, table_console)
 from lidarmap.errors import ConfigError, InputError
 
 InputsArgument = typer.Argument(..., help="LAS/LAZ files (their class-6 points are the building).")
 OutOption = typer.Option(..., "--out", "-o", help="Output folder (created).", file_okay=False)
-CrsOption = typer.Option(None, "--crs", help="CRS of inputs that carry none, e.g. EPSG:28992.")
 
 
 def register(app: typer.Typer) -> None:
@@ -293,8 +293,7 @@ def _footprint_of(xyz: Any, fps: Any, path: Path) -> Any:
 @handle_errors
 def run_command(
     tiles: list[Path] = typer.Argument(..., help="LAS/LAZ tiles (merged while streaming)."),
-    footprints: Path = typer.Option(..., "--footprints", "-f", help="Building footprints (GeoJSON).",
-                                    dir_okay=False),
+    footprints: Path = FootprintsOption,
     out_dir: Path = typer.Option(..., "--out", "-o", help="Output folder; an earlier run there is resumed "
                                  "(finished buildings are skipped).", file_okay=False),
     stages: Optional[str] = typer.Option(None, "--stages", help="Stages after segmentation, in order, e.g. "
@@ -310,8 +309,7 @@ def run_command(
     workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes (dask; default 1)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address for multi-machine "
                                             "runs, e.g. tcp://10.0.0.5:8786."),
-    id_field: Optional[str] = typer.Option(None, "--id-field", help="Footprint property holding the building id "
-                                           "(default 'id')."),
+    id_field: Optional[str] = IdFieldOption,
     crs: Optional[str] = CrsOption,
     seed: Optional[int] = SeedOption,
     config: Optional[Path] = ConfigOption,

@@ -35,6 +35,12 @@ ConfigOption = typer.Option(None, "--config", "-c", help="TOML config file; comm
                             exists=False, dir_okay=False)
 #: ``--seed`` option shared by every command that draws random numbers.
 SeedOption = typer.Option(None, "--seed", help="Random seed: the same input and seed give the same output.")
+#: ``--crs`` option of every command that reads LAS/LAZ (for files without a CRS record, e.g. AHN).
+CrsOption = typer.Option(None, "--crs", help="CRS of inputs that carry none, e.g. EPSG:28992.")
+#: Required ``--footprints`` option of the commands that split by building.
+FootprintsOption = typer.Option(..., "--footprints", "-f", help="Building footprints (GeoJSON).", dir_okay=False)
+#: ``--id-field`` option of every command that reads footprints.
+IdFieldOption = typer.Option(None, "--id-field", help="Footprint property holding the building id (default 'id').")
 
 
 def params_from(params_cls: type[P], config_path: Path | None, section: str | None = None, **flags: Any) -> P:

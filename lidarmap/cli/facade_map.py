@@ -27,7 +27,8 @@ from typing import TYPE_CHECKING, Any, Optional
 import typer
 from rich.table import Table
 
-from lidarmap.cli.common import ConfigOption, SeedOption, handle_errors, params_from, progress, table_console
+from lidarmap.cli.common import (ConfigOption, CrsOption, IdFieldOption, SeedOption, handle_errors, params_from,
+                                 progress, table_console)
 from lidarmap.errors import ConfigError, CRSError, InputError
 
 if TYPE_CHECKING:
@@ -248,9 +249,8 @@ def update_command(
     footprints: Optional[Path] = typer.Option(None, "--footprints", "-f", help="Building footprints (GeoJSON); "
                                               "optional with --aerial (default: the map's buildings).",
                                               dir_okay=False),
-    id_field: Optional[str] = typer.Option(None, "--id-field", help="Footprint property holding the building id "
-                                           "(default 'id')."),
-    crs: Optional[str] = typer.Option(None, "--crs", help="CRS of the points when their file has none."),
+    id_field: Optional[str] = IdFieldOption,
+    crs: Optional[str] = CrsOption,
     seed: Optional[int] = SeedOption,
     config: Optional[Path] = ConfigOption,
 ) -> None:

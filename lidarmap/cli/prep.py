@@ -8,7 +8,8 @@ from typing import Optional
 import typer
 from rich.table import Table
 
-from lidarmap.cli.common import ConfigOption, console, handle_errors, params_from, progress
+from lidarmap.cli.common import (ConfigOption, CrsOption, FootprintsOption, IdFieldOption, console, handle_errors,
+                                 params_from, progress)
 
 
 def register(app: typer.Typer) -> None:
@@ -19,21 +20,19 @@ def register(app: typer.Typer) -> None:
 @handle_errors
 def prep_command(
     tiles: list[Path] = typer.Argument(..., help="LAS/LAZ tiles (any number; merged while streaming)."),
-    footprints: Path = typer.Option(..., "--footprints", "-f", help="Building footprints (GeoJSON).",
-                                    dir_okay=False),
+    footprints: Path = FootprintsOption,
     out_dir: Path = typer.Option(..., "--out", "-o", help="Output folder (created; an earlier prep output there "
                                  "is replaced).", file_okay=False),
     buffer: Optional[float] = typer.Option(None, "--buffer", help="Keep points within this distance (m) of a "
                                            "footprint (default 5)."),
-    id_field: Optional[str] = typer.Option(None, "--id-field", help="Footprint property holding the building id "
-                                           "(default 'id')."),
+    id_field: Optional[str] = IdFieldOption,
     status_field: Optional[str] = typer.Option(None, "--status-field", help="Footprint property holding the "
                                                "construction status (default 'status')."),
     min_height: Optional[float] = typer.Option(None, "--min-height", help="Drop buildings lower than this (m, "
                                                "default 3)."),
     rotation: Optional[float] = typer.Option(None, "--rotation", help="Rotation (degrees about z) of the local "
                                              "frame stored with the outputs (default 0)."),
-    crs: Optional[str] = typer.Option(None, "--crs", help="CRS of tiles that carry none, e.g. EPSG:28992."),
+    crs: Optional[str] = CrsOption,
     config: Optional[Path] = ConfigOption,
 ) -> None:
     """Split tiles into buildings: buildings/<id>.laz, buildings.csv (index), frame.json, prep.json."""

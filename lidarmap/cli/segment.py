@@ -14,7 +14,7 @@ from typing import Any, Optional
 import typer
 from rich.table import Table
 
-from lidarmap.cli.common import ConfigOption, SeedOption, console, handle_errors, params_from, progress
+from lidarmap.cli.common import ConfigOption, CrsOption, SeedOption, console, handle_errors, params_from, progress
 from lidarmap.errors import ConfigError, InputError
 
 segment_app = typer.Typer(name="segment", no_args_is_help=True, add_completion=False,
@@ -23,7 +23,6 @@ segment_app = typer.Typer(name="segment", no_args_is_help=True, add_completion=F
 METHOD_HELP = "pointnet2 (default) or baseline (geometric features + gradient boosting)."
 MODEL_HELP = "Model file (default: the shipped model of the method; a .joblib file implies --method baseline)."
 DEVICE_HELP = "cpu, cuda or auto (a GPU when there is one)."
-CRS_HELP = "CRS of inputs that carry none, e.g. EPSG:28992."
 #: Files of a prep folder copied next to the segmented buildings, so the output is a prep folder too.
 PREP_SIDE_FILES = ("buildings.csv", "frame.json", "prep.json")
 
@@ -134,7 +133,7 @@ def predict_command(
                                               "(default 0.5)."),
     seed: Optional[int] = SeedOption,
     device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP),
-    crs: Optional[str] = typer.Option(None, "--crs", help=CRS_HELP),
+    crs: Optional[str] = CrsOption,
     config: Optional[Path] = ConfigOption,
 ) -> None:
     """Classify building points: class 6 where predicted, extra dimension building_probability; order kept."""
@@ -211,7 +210,7 @@ def evaluate_command(
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object (for scripts)."),
     seed: Optional[int] = SeedOption,
     device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP),
-    crs: Optional[str] = typer.Option(None, "--crs", help=CRS_HELP),
+    crs: Optional[str] = CrsOption,
     config: Optional[Path] = ConfigOption,
 ) -> None:
     """Score the model on labelled points (class 6 = building, other labelled classes = not; 0/1 not scored)."""
@@ -279,7 +278,7 @@ def train_command(
     epochs: Optional[int] = typer.Option(None, "--epochs", help="Training epochs (default 64)."),
     seed: Optional[int] = SeedOption,
     device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP),
-    crs: Optional[str] = typer.Option(None, "--crs", help=CRS_HELP),
+    crs: Optional[str] = CrsOption,
     config: Optional[Path] = ConfigOption,
 ) -> None:
     """Train a model on labelled points (class 6 vs other labelled classes; class 0/1 excluded from the loss)."""
