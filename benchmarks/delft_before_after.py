@@ -30,7 +30,7 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 from lidarmap.io.footprints import read_footprints  # noqa: E402
 from lidarmap.io.las import read_las  # noqa: E402
 from lidarmap.pipeline import PipelineConfig, RunParams, run_pipeline  # noqa: E402
-from lidarmap.prep import PrepParams  # noqa: E402
+from lidarmap.prep import PrepParams, prep_tiles  # noqa: E402
 from lidarmap.voxel import read_voxels, voxelize_naive  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -116,7 +116,8 @@ def main() -> None:
         result = run_pipeline([DATA / "ahn3_cropped_1.laz"], fps, out, config, crs="EPSG:28992")
         records = sorted(result.records, key=lambda r: -r["building_points"])
         chosen = args.building or records[0]["id"]
-        bp = next(b for b in result.prep.buildings if b.id == chosen)
+        before = prep_tiles([DATA / "ahn3_cropped_1.laz"], fps, config.prep, crs="EPSG:28992")  # the input points
+        bp = next(b for b in before.buildings if b.id == chosen)
         render(out / "buildings" / chosen, bp.cloud, chosen)
         summary = json.loads((out / "summary.json").read_text())
     n = len(result.records)

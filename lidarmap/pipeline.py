@@ -2,21 +2,28 @@
 
 ::
 
-    prep (merge tiles, split per footprint)
-      -> segmentation, once over every kept point (each building sees its neighbours as context)
-      -> per building: densify / flatten (order configurable) -> voxelize (majority label) -> meshes
-      -> OUT/buildings/<id>/, OUT/summary.json, OUT/buildings.city.json
+    prep (stream the tiles chunk by chunk into a spool on disk, per footprint: buildings cut by tile edges are
+          assembled whole)
+      -> per group of neighbouring buildings, one task (this process, or a dask worker): segmentation of their
+         points with the kept points of the buildings around them as context; then per building densify / flatten
+         (order configurable) -> voxelize (majority label) -> meshes
+      -> this process writes OUT/buildings/<id>/, OUT/summary.json, OUT/buildings.city.json
+
+Memory is bounded by the largest group plus its context, a chunk of input and a few tasks in flight, not by the
+input size (docs/cluster.md).
 
 Per building (``OUT/buildings/<id>/``, see docs/pipeline.md): ``points.laz`` (the building's area: every input point
-in input order with its new class and ``building_probability``, building points moved by flattening, removed
-outliers as class 7, then the new points of densification with the LAS ``synthetic`` flag), ``voxels.npz`` +
-``voxels.vox`` (building voxels, majority label), ``mesh.ply`` + ``mesh.obj`` (CRS, double precision), the other
-mesh kind as ``mesh_<kind>.ply``, and ``building.json`` (statistics and the fingerprint), written last: a folder
-without it does not exist (each folder is written to a temporary folder and renamed into place).
+in canonical order (x, y, z, then the attributes: the same however the input was tiled) with its new class and
+``building_probability``, building points moved by flattening, removed outliers as class 7, then the new points of
+densification with the LAS ``synthetic`` flag), ``voxels.npz`` + ``voxels.vox`` (building voxels, majority label),
+``mesh.ply`` + ``mesh.obj`` (CRS, double precision), the other mesh kind as ``mesh_<kind>.ply``, and
+``building.json`` (statistics and the fingerprint), written last: a folder without it does not exist (each folder is
+written to a temporary folder and renamed into place).
 
-Resumable: a building whose ``building.json`` carries the current fingerprint (its input points, the model, every
-parameter) is skipped. Deterministic: every building draws its random numbers from (seed, building id), and
-segmentation from the seed, so serial, distributed (dask) and resumed runs write the same results.
+Resumable: a building whose ``building.json`` carries the current fingerprint (its input points, its segmentation
+context, the model, every parameter) is skipped. Deterministic: every building draws its random numbers from (seed,
+building id), a group's segmentation from (seed, its first building's id), so serial, distributed (dask) and resumed runs write the same results. A
+building whose task fails is reported in ``summary.json`` (``failed``: id -> reason) and the others go on.
 """
 
 from __future__ import annotations
@@ -25,6 +32,8 @@ import dataclasses
 import hashlib
 import json
 import math
+import shutil
+import tempfile
 import time
 import zlib
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -37,6 +46,7 @@ from pyproj import CRS
 
 from lidarmap import __version__
 from lidarmap.densify import DensifyParams, densify
+from lidarmap.distributed import TaskFailure, map_tasks, run_task
 from lidarmap.errors import ConfigError, InputError
 from lidarmap.flatten import FlattenParams, flatten_points
 from lidarmap.io.atomic import atomic_dir, write_text_atomic
@@ -44,13 +54,13 @@ from lidarmap.io.footprints import Footprints
 from lidarmap.io.las import write_las
 from lidarmap.io.pointcloud import PointCloud
 from lidarmap.mesh import MeshParams, surface_mesh, voxel_mesh, write_mesh
-from lidarmap.prep import BuildingPoints, PrepParams, PrepResult, building_file_name, prep_tiles
+from lidarmap.prep import BuildingPoints, PrepParams, SpooledPrep, building_file_name
 from lidarmap.segment.features import BUILDING_CLASS
 from lidarmap.segment.predict import PredictParams, apply_classes, predict
 from lidarmap.voxel import VoxelGrid, VoxelParams, voxelize, write_vox, write_voxels
 
 __all__ = ["RunParams", "PipelineConfig", "BuildingOutput", "RunResult", "process_building", "run_pipeline",
-           "segment_buildings", "building_seed", "NOISE_CLASS", "STAGES"]
+           "segment_group", "group_task", "GroupJob", "building_groups", "building_seed", "NOISE_CLASS", "STAGES"]
 
 #: Stages that may follow segmentation, in any order.
 STAGES = ("densify", "flatten")
@@ -78,6 +88,12 @@ class RunParams:
         points: roof height field + walls + floor; accurate, docs/voxel_mesh.md) or "voxels" (watertight voxel
         mesh); the other kind is written as mesh_<kind>.ply.
     mesh_voxel_size (0.5): voxel size (m) of the voxel mesh; the voxel output uses ``[voxel] size``.
+    group_size (100.0): buildings whose points' centre falls in the same ``group_size`` x ``group_size`` m cell are
+        one task, segmented together (a city of small buildings in one network call per building would cost 2x);
+        0 = one building per task. Memory per task: a group plus its context.
+    context (16.0): segmentation context (m): each group is segmented with the kept points of the other buildings
+        within this distance of its points' bounds (half the shipped model's 32 m block: a window centred on a
+        building's edge is full); 0 = the group alone. Results do not depend on what else is in the run.
     workers (1): worker processes on this machine (dask.distributed LocalCluster); 1 = everything in this process.
     scheduler (""): address of a running dask scheduler (e.g. "tcp://10.0.0.5:8786") for multi-machine runs;
         overrides ``workers``. Workers compute, this process writes, so only this machine needs the output folder.
@@ -93,6 +109,8 @@ class RunParams:
     min_points: int = 50
     mesh: str = "surface"
     mesh_voxel_size: float = 0.5
+    group_size: float = 100.0
+    context: float = 16.0
     workers: int = 1
     scheduler: str = ""
     seed: int = 0
@@ -113,6 +131,12 @@ class RunParams:
             raise ValueError("mesh_voxel_size must be > 0")
         if self.workers < 1:
             raise ValueError("workers must be at least 1")
+        if not (math.isfinite(self.context) and self.context >= 0):
+            raise ValueError("context must be >= 0")
+        if not (math.isfinite(self.group_size) and self.group_size >= 0):
+            raise ValueError("group_size must be >= 0")
+        if self.scheduler and not self.scheduler.startswith(("tcp://", "tls://", "inproc://", "ucx://")):
+            raise ValueError(f"scheduler address {self.scheduler!r} must look like tcp://HOST:PORT")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -302,10 +326,13 @@ def building_dir(out_dir: Path, building_id: str) -> Path:
     return out_dir / "buildings" / building_file_name(building_id).removesuffix(".laz")
 
 
-def building_fingerprint(bp: BuildingPoints, config: PipelineConfig, model_digest: str) -> str:
-    """Digest of everything a building's results depend on: its points and attributes, the model, the parameters."""
+def building_fingerprint(bp: BuildingPoints, config: PipelineConfig, model_digest: str, context_digest: str = ""
+                         ) -> str:
+    """Digest of everything a building's results depend on: its points and attributes, its segmentation context
+    (digest), the model, the parameters."""
     h = hashlib.sha256()
     h.update(json.dumps({"lidarmap": __version__, "model": model_digest, "params": config.result_params(),
+                         "context": context_digest,
                          "footprint": bp.footprint.wkb_hex, "ground_z": bp.ground_z}, sort_keys=True,
                         default=str).encode())
     h.update(np.ascontiguousarray(bp.cloud.xyz).tobytes())
@@ -365,7 +392,7 @@ class RunResult:
     skipped: list[str]
     failed: dict[str, str]
     dropped: dict[str, str]
-    prep: PrepResult
+    prep: SpooledPrep
     seconds: float
 
 
@@ -383,48 +410,108 @@ def load_segmenter(run: RunParams) -> tuple[Any, str]:
     return model, hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def segment_buildings(buildings: Sequence[BuildingPoints], model: Any, params: PredictParams,
-                      report: Callable[[int, int], None] | None = None) -> list[np.ndarray]:
-    """Building probability of every point of every building, from one pass over all of them together.
-
-    The buildings' points are disjoint (each point belongs to one footprint), so their union is the kept cloud:
-    windows see across building borders, as on the merged tiles (more context than one building alone).
-    """
-    if not buildings:
-        return []
-    merged = PointCloud.concatenate([b.cloud for b in buildings])
-    prob = predict(merged, model, params, report)
+def segment_group(buildings: Sequence[BuildingPoints], context: PointCloud | None, model: Any,
+                  params: PredictParams) -> list[np.ndarray]:
+    """Building probability of every point of a group of neighbouring buildings, segmented together (windows
+    cover their points) with the kept points of the buildings around them as context (``context``, cropped to what
+    the windows see): the same whatever else is in the run, on whatever machine."""
+    own = PointCloud.concatenate([b.cloud for b in buildings])
+    if context is not None and hasattr(model, "spec"):
+        context = _within_windows(context, own.xyz[:, :2], model.spec.block_size, params.overlap)
+    if context is None or not len(context):
+        prob = predict(own, model, params)
+    else:
+        targets = np.zeros(len(own) + len(context), dtype=bool)
+        targets[:len(own)] = True
+        prob = predict(PointCloud.concatenate([own, context]), model, params, targets=targets)
     return np.split(prob, np.cumsum([len(b.cloud) for b in buildings])[:-1])
 
 
-def _compute(job: tuple[BuildingPoints, np.ndarray, PipelineConfig]) -> BuildingOutput | str:
-    """One building on a worker: its output, or the one-line reason it failed."""
-    bp, probability, config = job
-    try:
-        return process_building(bp, probability, config)
-    except InputError as exc:
-        return exc.problem
+#: Context kept beyond the windows' edges (m): the neighbourhoods of the shape features of points near an edge.
+WINDOW_MARGIN = 2.0
 
 
-def _map(jobs: list[tuple[BuildingPoints, np.ndarray, PipelineConfig]], run: RunParams
-         ) -> Iterator[tuple[int, BuildingOutput | str]]:
-    """(job number, result) of every job: in this process, or on dask workers (results in completion order)."""
-    if run.workers == 1 and not run.scheduler:
-        for number, job in enumerate(jobs):
-            yield number, _compute(job)
-        return
-    from dask.distributed import Client, LocalCluster, as_completed
+def _within_windows(context: PointCloud, xy: np.ndarray, block_size: float, overlap: float) -> PointCloud | None:
+    """The context points that the windows covering ``xy`` can see (plus :data:`WINDOW_MARGIN`)."""
+    from lidarmap.segment.blocks import window_centres
 
-    cluster = None if run.scheduler else LocalCluster(n_workers=run.workers, threads_per_worker=1, processes=True,
-                                                      dashboard_address=None)
-    try:
-        with Client(run.scheduler or cluster) as client:
-            futures = {client.submit(_compute, job, pure=False): number for number, job in enumerate(jobs)}
-            for future in as_completed(futures):
-                yield futures[future], future.result()
-    finally:
-        if cluster is not None:
-            cluster.close()
+    centres = window_centres(xy, block_size, overlap)
+    reach = block_size / 2 + WINDOW_MARGIN
+    lo, hi = centres.min(axis=0) - reach, centres.max(axis=0) + reach
+    cxy = context.xyz[:, :2]
+    inside = np.all((cxy >= lo) & (cxy <= hi), axis=1)
+    return context.subset(np.flatnonzero(inside)) if inside.any() else None
+
+
+@dataclasses.dataclass
+class GroupJob:
+    """One task: a group of neighbouring buildings, their segmentation context, the configuration."""
+
+    buildings: list[BuildingPoints]
+    context: PointCloud | None
+    config: PipelineConfig
+    todo: list[bool]  # False: finished by an earlier run (segmented with the group, not reconstructed again)
+
+
+def group_task(job: GroupJob, model: Any) -> list[BuildingOutput | TaskFailure | None]:
+    """Segment a group of buildings together, then reconstruct each one to do (in this process or on a dask
+    worker); a building that fails gives a :class:`~lidarmap.distributed.TaskFailure` and the others go on."""
+    run = job.config.run
+    first = job.buildings[0].id
+    params = dataclasses.replace(job.config.segment, union=run.union, seed=building_seed(run.seed, first))
+    probabilities = segment_group(job.buildings, job.context, model, params)
+    return [run_task(process_building, bp, prob, job.config) if todo else None
+            for bp, prob, todo in zip(job.buildings, probabilities, job.todo)]
+
+
+def building_groups(spooled: SpooledPrep, size: float) -> list[list[int]]:
+    """Entries grouped by the ``size`` x ``size`` m cell holding the centre of their points' bounds (0: one
+    building per group); groups in the order of their first entry, entries in prep order."""
+    groups: dict[tuple[int, int] | int, list[int]] = {}
+    for k, e in enumerate(spooled.entries):
+        key = k if size <= 0 else (math.floor((e.bounds[0] + e.bounds[2]) / 2 / size),
+                                   math.floor((e.bounds[1] + e.bounds[3]) / 2 / size))
+        groups.setdefault(key, []).append(k)
+    return list(groups.values())
+
+
+def _context_digest(clouds: Sequence[PointCloud | None]) -> str:
+    h = hashlib.sha256()
+    for cloud in clouds:
+        if cloud is None:
+            continue
+        h.update(np.ascontiguousarray(cloud.xyz).tobytes())
+        for name in sorted(cloud.attrs):
+            h.update(name.encode())
+            h.update(np.ascontiguousarray(cloud.attrs[name]).tobytes())
+    return h.hexdigest()
+
+
+def _jobs(spooled: SpooledPrep, groups: list[list[int]], out: Path, config: PipelineConfig, model_digest: str,
+          plan: dict[str, Any]) -> Iterator[GroupJob]:
+    """The jobs of the groups holding a building not finished by an earlier run, one group loaded at a time;
+    fills ``plan`` (per job: its entries and fingerprints; finished records) as it goes."""
+    for members in groups:
+        buildings = [spooled.load(k) for k in members]
+        context = spooled.context(members, config.run.context) if config.run.context > 0 else None
+        digest = _context_digest([b.cloud for b in buildings] + [context])
+        prints = [building_fingerprint(b, config, model_digest, digest) for b in buildings]
+        earlier = [finished(out, b.id, fp) for b, fp in zip(buildings, prints)]
+        for k, b, rec in zip(members, buildings, earlier):
+            if rec is not None:
+                plan["records"][k] = rec
+                plan["skipped"].append(b.id)
+        if all(rec is not None for rec in earlier):
+            continue
+        plan["todo"].append(list(zip(members, prints)))
+        yield GroupJob(buildings, context, config, [rec is None for rec in earlier])
+
+
+def _worker_config(config: PipelineConfig) -> PipelineConfig:
+    """On dask workers torch gets one thread per worker process (results do not depend on it)."""
+    if config.run.workers == 1 and not config.run.scheduler:
+        return config
+    return dataclasses.replace(config, segment=dataclasses.replace(config.segment, threads=1))
 
 
 def check_out_dir(out_dir: str | Path) -> Path:
@@ -433,48 +520,81 @@ def check_out_dir(out_dir: str | Path) -> Path:
     if out.exists():
         if not out.is_dir():
             raise InputError("output exists and is not a folder", out)
-        if any(out.iterdir()) and not ((out / "summary.json").exists() or (out / "buildings").is_dir()):
+        ours = any(out.iterdir()) and ((out / "summary.json").exists() or (out / "buildings").is_dir())
+        if not ours and any(not p.name.startswith(WORK_PREFIX) for p in out.iterdir()):
             raise InputError("output folder is not empty and holds no earlier run to resume; choose another -o", out)
     return out
+
+
+#: Prefix of the spool folder a run keeps in its output folder while it runs (a killed run's is removed by the next).
+WORK_PREFIX = ".work-"
+
+
+def _remove_stale_work(out: Path) -> None:
+    for stale in out.glob(f"{WORK_PREFIX}*"):
+        shutil.rmtree(stale, ignore_errors=True)
 
 
 def run_pipeline(tiles: Sequence[str | Path], footprints: Footprints, out_dir: str | Path,
                  config: PipelineConfig = PipelineConfig(), crs: str | CRS | None = None,
                  report: Report | None = None) -> RunResult:
-    """The whole aerial pipeline; ``report(step, done, total)`` follows progress ("read", "segment", "buildings")."""
+    """The whole aerial pipeline; ``report(step, done, total)`` follows progress ("read", "buildings").
+
+    Memory: the tiles are streamed into a spool on disk (``OUT/.work-*``, removed at the end); then one group of
+    buildings (plus its context) at a time is loaded and sent to a task, at most a few tasks in flight.
+    """
+    from lidarmap.prep import stream_tiles
+
     started = time.perf_counter()
     out = check_out_dir(out_dir)
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    _remove_stale_work(out)
     run = config.run
-    segment_params = dataclasses.replace(config.segment, union=run.union, seed=run.seed)
-    prep = prep_tiles(tiles, footprints, config.prep, crs,
-                      progress=(lambda n: report("read", n, 0)) if report else None)
-    model, model_digest = load_segmenter(run)
-    prints = [building_fingerprint(b, config, model_digest) for b in prep.buildings]
-    earlier = [finished(out, b.id, fp) for b, fp in zip(prep.buildings, prints)]
-    todo = [i for i, rec in enumerate(earlier) if rec is None]
-    records: dict[int, dict[str, Any]] = {i: rec for i, rec in enumerate(earlier) if rec is not None}
-    failed: dict[str, str] = {}
-    if todo:
-        # every building is segmented, done or not, so each one sees the same context in every run
-        probs = segment_buildings(prep.buildings, model, segment_params,
-                                  (lambda d, t: report("segment", d, t)) if report else None)
-        jobs = [(prep.buildings[i], probs[i], config) for i in todo]
-        for done, (number, result) in enumerate(_map(jobs, run), 1):
-            i = todo[number]
-            if isinstance(result, str):
-                failed[prep.buildings[i].id] = result
-            else:
-                records[i] = write_building(out, result, prints[i], run.mesh)
+    work = Path(tempfile.mkdtemp(prefix=WORK_PREFIX, dir=out))  # the spool: beside the output, on its disk
+    try:
+        spooled = stream_tiles(tiles, footprints, config.prep, crs, work_dir=work,
+                               progress=(lambda n: report("read", n, 0)) if report else None)
+        model, model_digest = load_segmenter(run)
+        plan: dict[str, Any] = {"records": {}, "skipped": [], "todo": []}
+        failed: dict[str, str] = {}
+        processed: list[str] = []
+        jobs = _jobs(spooled, building_groups(spooled, run.group_size), out, _worker_config(config), model_digest,
+                     plan)
+        done = 0
+        for number, results in map_tasks(group_task, jobs, run.workers, run.scheduler, shared=(model,)):
+            members = plan["todo"][number]
+            if isinstance(results, TaskFailure):  # the whole group (segmentation) failed
+                results = [results] * len(members)
+            for (k, fingerprint), result in zip(members, results):
+                if result is None:  # finished earlier
+                    continue
+                if isinstance(result, TaskFailure):
+                    failed[spooled.entries[k].id] = result.reason
+                else:
+                    plan["records"][k] = write_building(out, result, fingerprint, run.mesh)
+                    processed.append(result.id)
+            done += sum(result is not None for result in results)
             if report:
-                report("buildings", done, len(todo))
-    ordered = [records[i] for i in sorted(records)]
-    result = RunResult(out_dir=out, records=ordered, processed=[prep.buildings[i].id for i in todo
-                                                                if i in records],
-                       skipped=[prep.buildings[i].id for i, rec in enumerate(earlier) if rec is not None],
-                       failed=failed, dropped=dict(prep.dropped), prep=prep, seconds=time.perf_counter() - started)
-    _write_summary(out, result, config)
-    _write_cityjson(out, result)
-    return result
+                report("buildings", done + len(plan["skipped"]), len(spooled.entries))
+        records = [plan["records"][k] for k in sorted(plan["records"])]
+        order = _entry_order(spooled)  # results arrive in completion order; report them in prep order
+        result = RunResult(out_dir=out, records=records, processed=sorted(processed, key=order),
+                           skipped=sorted(plan["skipped"], key=order),
+                           failed={k: failed[k] for k in sorted(failed, key=order)},
+                           dropped=dict(spooled.dropped), prep=spooled, seconds=time.perf_counter() - started)
+        _write_summary(out, result, config)
+        _write_cityjson(out, result)
+        return result
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+        if created and out.is_dir() and not any(out.iterdir()):  # refused input: leave no empty folder
+            out.rmdir()
+
+
+def _entry_order(spooled: Any) -> Callable[[str], int]:
+    position = {e.id: k for k, e in enumerate(spooled.entries)}
+    return lambda building_id: position[building_id]
 
 
 def _write_summary(out: Path, result: RunResult, config: PipelineConfig) -> None:
@@ -490,21 +610,28 @@ def _write_summary(out: Path, result: RunResult, config: PipelineConfig) -> None
 
 
 def _write_cityjson(out: Path, result: RunResult) -> None:
-    from lidarmap.export.cityjson import AerialBuilding, aerial_to_cityjson, write_cityjson
+    """``buildings.city.json``, streamed: one building's mesh in memory at a time."""
+    from lidarmap.export.cityjson import AerialBuilding, write_aerial_cityjson
 
-    by_id = {b.id: b for b in result.prep.buildings}
-    entries = []
-    for record in result.records:
-        bp = by_id[record["id"]]
-        mesh = trimesh.load(building_dir(out, bp.id) / "mesh.ply", process=False)
-        attributes = {**bp.properties, "lidarmap_points": record["output_points"],
-                      "lidarmap_building_points": record["building_points"], "lidarmap_voxels": record["voxels"],
-                      "lidarmap_height_source": bp.height_source}
-        entries.append(AerialBuilding(id=bp.id, footprint=bp.footprint, ground_z=bp.ground_z, height=bp.height,
-                                      mesh_vertices=np.asarray(mesh.vertices, dtype=np.float64),
-                                      mesh_faces=np.asarray(mesh.faces), attributes=attributes))
+    by_id = {e.id: e for e in result.prep.entries}
+
+    def buildings() -> Iterator[AerialBuilding]:
+        for record in result.records:
+            e = by_id[record["id"]]
+            mesh = trimesh.load(building_dir(out, e.id) / "mesh.ply", process=False)
+            attributes = {**e.properties, "lidarmap_points": record["output_points"],
+                          "lidarmap_building_points": record["building_points"], "lidarmap_voxels": record["voxels"],
+                          "lidarmap_height_source": e.height_source}
+            yield AerialBuilding(id=e.id, footprint=e.footprint, ground_z=e.ground_z, height=e.height,
+                                 mesh_vertices=np.asarray(mesh.vertices, dtype=np.float64),
+                                 mesh_faces=np.asarray(mesh.faces), attributes=attributes)
+
+    entries = [by_id[r["id"]] for r in result.records]
+    grounds = [e.ground_z for e in entries if math.isfinite(e.ground_z)]
+    translate = ([math.floor(min(e.bounds[0] for e in entries)), math.floor(min(e.bounds[1] for e in entries)),
+                  math.floor(min(grounds, default=0.0))] if entries else [0.0, 0.0, 0.0])
     crs_wkt = result.prep.crs.to_wkt() if result.prep.crs is not None else ""
-    write_cityjson(out / "buildings.city.json", aerial_to_cityjson(entries, crs_wkt))
+    write_aerial_cityjson(out / "buildings.city.json", buildings(), crs_wkt, translate)
 
 
 def check_stage_names(stages: Iterable[str]) -> tuple[str, ...]:

@@ -51,9 +51,11 @@ from lidarmap.io.las import iter_las, read_header, resolve_crs, write_las
 from lidarmap.io.pointcloud import PointCloud
 
 __all__ = [
-    "PrepParams", "BuildingPoints", "PrepResult", "TileSet", "FootprintIndex", "DEFAULT_EXCLUDED_STATUSES",
+    "PrepParams", "BuildingPoints", "PrepSummary", "PrepResult", "TileSet", "FootprintIndex",
+    "DEFAULT_EXCLUDED_STATUSES",
     "assign_points", "split_buildings", "prep_cloud", "scan_tiles", "prep_tiles", "write_prep", "read_prep_index",
-    "check_out_dir", "building_file_name",
+    "check_out_dir", "building_file_name", "stream_tiles", "SpooledPrep", "BuildingEntry", "canonical_order",
+    "chunk_columns",
 ]
 
 #: Status values (compared case-insensitively, whitespace collapsed) that mark a footprint as not built yet.
@@ -183,15 +185,14 @@ class BuildingPoints:
         return frame.to_local(self.cloud.xyz)
 
 
-@dataclasses.dataclass
-class PrepResult:
-    """Output of :func:`prep_tiles` / :func:`prep_cloud`.
+@dataclasses.dataclass(kw_only=True)
+class PrepSummary:
+    """What prep found, whether the points are loaded (:class:`PrepResult`) or spooled (:class:`SpooledPrep`).
 
     ``dropped`` maps footprint ids to the reason they produced no building ("under construction (status ...)",
     "lower than 3 m (...)", "no points within 5 m", "no points inside the footprint").
     """
 
-    buildings: list[BuildingPoints]
     dropped: dict[str, str]
     frame: LocalFrame
     crs: CRS | None
@@ -206,6 +207,13 @@ class PrepResult:
     @property
     def points_per_second(self) -> float:
         return self.points_read / self.seconds if self.seconds > 0 else float("nan")
+
+
+@dataclasses.dataclass(kw_only=True)
+class PrepResult(PrepSummary):
+    """Output of :func:`prep_tiles` / :func:`prep_cloud`: every building with its points."""
+
+    buildings: list[BuildingPoints]
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -452,24 +460,6 @@ def assign_points(xy: np.ndarray, footprints: Footprints | Sequence[BaseGeometry
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def _group_percentile(groups: np.ndarray, values: np.ndarray, q: float, n_groups: int) -> np.ndarray:
-    """Percentile ``q`` (linear interpolation, like ``numpy.percentile``) of ``values`` per group; NaN when empty."""
-    out = np.full(n_groups, np.nan)
-    if not len(groups):
-        return out
-    order = np.lexsort((values, groups))
-    v = values[order]
-    counts = np.bincount(groups, minlength=n_groups)
-    starts = np.cumsum(counts) - counts
-    has = counts > 0
-    pos = (counts[has] - 1) * (q / 100.0)
-    lo = np.floor(pos).astype(np.int64)
-    hi = np.minimum(lo + 1, counts[has] - 1)
-    vlo, vhi = v[starts[has] + lo], v[starts[has] + hi]
-    out[has] = vlo + (pos - lo) * (vhi - vlo)
-    return out
-
-
 def _property_height(properties: dict[str, Any], field: str) -> float | None:
     value = properties.get(field)
     if value is None or isinstance(value, bool):
@@ -481,27 +471,52 @@ def _property_height(properties: dict[str, Any], field: str) -> float | None:
     return height if math.isfinite(height) else None
 
 
-class _Accumulator:
-    """Collects, chunk after chunk, the points kept for each footprint and the ground points near them."""
+#: Spool column of each kept point's distance to its footprint (float64 while streaming).
+_DISTANCE = "__distance"
 
-    def __init__(self, footprints: Footprints, params: PrepParams):
+
+def chunk_columns(chunk: PointCloud) -> dict[str, np.ndarray]:
+    """A chunk as spool columns: ``xyz`` and every attribute."""
+    return {"xyz": chunk.xyz, **chunk.attrs}
+
+
+class _Accumulator:
+    """Collects, chunk after chunk, the points kept for each footprint and the ground points near them, in two
+    :class:`~lidarmap.spool.ColumnSpool` keyed by footprint (on disk under ``work_dir`` when given, so memory holds
+    one chunk and one spool buffer whatever the input size)."""
+
+    def __init__(self, footprints: Footprints, params: PrepParams, work_dir: Path | None = None):
+        from lidarmap.spool import ColumnSpool
+
         self.footprints = footprints
         self.params = params
         self.excluded = np.array([params.is_excluded(p.get(params.status_field)) for p in footprints.properties],
                                  dtype=bool)
         self.index = FootprintIndex(footprints.polygons, params.buffer)
         self.ground_index = FootprintIndex(footprints.polygons, params.ground_radius)
-        self.clouds: list[PointCloud] = []
-        self.building: list[np.ndarray] = []
-        self.distance: list[np.ndarray] = []
-        self.ground_fp: list[np.ndarray] = []
-        self.ground_z: list[np.ndarray] = []
+        buffer_rows = max(params.chunk_points, 100_000)
+        self.points = ColumnSpool(len(footprints), None if work_dir is None else work_dir / "points", buffer_rows)
+        self.ground = ColumnSpool(len(footprints), None if work_dir is None else work_dir / "ground", buffer_rows)
+        self.extra_dims: list[str] | None = None
+        self.missing: set[str] = set()  # attributes some tile lacks: dropped from the output (as in concatenate)
         self.points_read = 0
+
+    def _columns(self, chunk: PointCloud, rows: np.ndarray, distance: np.ndarray) -> dict[str, np.ndarray]:
+        columns = chunk_columns(chunk.subset(rows))
+        columns[_DISTANCE] = distance
+        if self.points.dtypes:  # tiles of other point formats: fill what they lack, drop what the first lacked
+            for name in set(self.points.dtypes) - set(columns):
+                self.missing.add(name)
+                columns[name] = np.zeros((len(rows), *self.points.shapes[name]), self.points.dtypes[name])
+            columns = {k: v for k, v in columns.items() if k in self.points.dtypes}
+        return columns
 
     def add(self, chunk: PointCloud) -> None:
         self.points_read += len(chunk)
         if not len(chunk):
             return
+        if self.extra_dims is None:
+            self.extra_dims = list(chunk.extra_dims)
         xy = chunk.xyz[:, :2]
         index, distance = self.index.assign(xy)
         hit = index >= 0
@@ -509,97 +524,178 @@ class _Accumulator:
         excluded[hit] = self.excluded[index[hit]]
         keep = np.flatnonzero(hit & ~excluded)
         if len(keep):
-            self.clouds.append(chunk.subset(keep))
-            self.building.append(index[keep])
-            self.distance.append(distance[keep])
+            self.points.add(index[keep], self._columns(chunk, keep, distance[keep]))
         classes = chunk.attrs.get("classification")
         if classes is not None:
             ground = np.flatnonzero(classes == self.params.ground_class)
             if len(ground):
                 pt, fp = self.ground_index.near_pairs(xy[ground])
-                self.ground_fp.append(fp)
-                self.ground_z.append(chunk.xyz[ground[pt], 2])
+                self.ground.add(fp, {"z": chunk.xyz[ground[pt], 2]})
 
-    def finish(self, crs: CRS | None, sources: list[str], seconds: float) -> PrepResult:
+    def finish(self, crs: CRS | None, sources: list[str], seconds: float) -> "SpooledPrep":
         return _finish(self, crs, sources, seconds)
 
 
-def _finish(acc: _Accumulator, crs: CRS | None, sources: list[str], seconds: float) -> PrepResult:
+def _percentile(values: np.ndarray, q: float) -> float:
+    return float(np.percentile(values, q)) if len(values) else float("nan")
+
+
+@dataclasses.dataclass
+class BuildingEntry:
+    """One building of a :class:`SpooledPrep` before its points are loaded."""
+
+    id: str
+    key: int  # footprint index (spool key)
+    footprint: BaseGeometry
+    properties: dict[str, Any]
+    height: float
+    height_source: str
+    ground_z: float
+    points: int
+    points_inside: int
+    bounds: tuple[float, float, float, float]  # of its points (x0, y0, x1, y1)
+    status: str | None = None
+
+
+def _building_entry(acc: _Accumulator, i: int, dropped: dict[str, str]) -> BuildingEntry | None:
+    """The entry of footprint ``i`` from its spooled points, or ``None`` (reason in ``dropped``)."""
     params, fps = acc.params, acc.footprints
-    n_fp = len(fps)
+    fid, props = fps.ids[i], fps.properties[i]
+    status = props.get(params.status_field)
+    if acc.excluded[i]:
+        dropped[fid] = f"under construction ({params.status_field}={status!r})"
+        return None
+    if acc.points.counts[i] == 0:
+        dropped[fid] = f"no points within {params.buffer:g} m"
+        return None
+    cols = acc.points.get(i, ["xyz", _DISTANCE])
+    z, inside = cols["xyz"][:, 2], cols[_DISTANCE] == 0
+    ground = _percentile(acc.ground.get(i)["z"], 50.0) if acc.ground.counts[i] else float("nan")
+    low = _percentile(z, params.ground_percentile)
+    given = _property_height(props, params.height_field)
+    if given is not None:
+        height, source, ground_z = given, "footprint", ground if math.isfinite(ground) else low
+    elif not inside.any():
+        dropped[fid] = "no points inside the footprint (height unknown)"
+        return None
+    elif math.isfinite(ground):
+        height, source, ground_z = _percentile(z[inside], params.roof_percentile) - ground, "points", ground
+    else:
+        height, source, ground_z = _percentile(z[inside], params.roof_percentile) - low, "points-no-ground", low
+    if height < params.min_height:
+        dropped[fid] = f"lower than {params.min_height:g} m ({height:.2f} m, {source})"
+        return None
+    lo, hi = cols["xyz"][:, :2].min(axis=0), cols["xyz"][:, :2].max(axis=0)
+    return BuildingEntry(id=fid, key=i, footprint=fps.polygons[i], properties=dict(props), height=float(height),
+                         height_source=source, ground_z=float(ground_z), points=int(acc.points.counts[i]),
+                         points_inside=int(inside.sum()), bounds=(float(lo[0]), float(lo[1]), float(hi[0]),
+                                                                  float(hi[1])),
+                         status=None if status is None else str(status))
+
+
+def _finish(acc: _Accumulator, crs: CRS | None, sources: list[str], seconds: float) -> "SpooledPrep":
     dropped: dict[str, str] = {}
-    for i in np.flatnonzero(acc.excluded):
-        status = fps.properties[i].get(params.status_field)
-        dropped[fps.ids[i]] = f"under construction ({params.status_field}={status!r})"
-    if acc.clouds:
-        kept = PointCloud.concatenate(acc.clouds) if len(acc.clouds) > 1 else acc.clouds[0]
-        building = np.concatenate(acc.building)
-        distance = np.concatenate(acc.distance)
+    entries = [e for e in (_building_entry(acc, i, dropped) for i in range(len(acc.footprints))) if e is not None]
+    if entries:
+        zmin = min(float(acc.points.get(e.key, ["xyz"])["xyz"][:, 2].min()) for e in entries)
+        corner = np.array([[min(e.bounds[0] for e in entries), min(e.bounds[1] for e in entries), zmin]])
+        frame = LocalFrame.around(corner, rotation_deg=acc.params.rotation_deg)
     else:
-        kept, building, distance = None, np.zeros(0, np.int64), np.zeros(0)
-    acc.clouds.clear()
+        x0, y0, _, _ = acc.footprints.bounds
+        frame = LocalFrame(offset=(math.floor(x0), math.floor(y0), 0.0), rotation_deg=acc.params.rotation_deg)
+    names = [n for n in acc.points.names if n not in acc.missing]
+    rgb16 = False
+    if acc.params.quantize_rgb and {"red", "green", "blue"} <= set(names):
+        rgb16 = any(int(acc.points.get(e.key, [c])[c].max(initial=0)) > 255 for e in entries
+                    for c in ("red", "green", "blue"))
+    return SpooledPrep(entries=entries, dropped=dropped, frame=frame, crs=crs, params=acc.params,
+                       spool=acc.points, names=names, extra_dims=[d for d in (acc.extra_dims or []) if d in names],
+                       rgb16=rgb16, points_read=acc.points_read, points_kept=int(sum(e.points for e in entries)),
+                       footprints=len(acc.footprints), sources=sources, footprint_source=acc.footprints.source,
+                       seconds=seconds, ground=acc.ground)
 
-    z = kept.xyz[:, 2] if kept is not None else np.zeros(0)
-    inside = distance == 0
-    counts = np.bincount(building, minlength=n_fp)
-    counts_inside = np.bincount(building[inside], minlength=n_fp)
-    roof = _group_percentile(building[inside], z[inside], params.roof_percentile, n_fp)
-    ground_fp = np.concatenate(acc.ground_fp) if acc.ground_fp else np.zeros(0, np.int64)
-    ground_z = np.concatenate(acc.ground_z) if acc.ground_z else np.zeros(0)
-    ground = _group_percentile(ground_fp, ground_z, 50.0, n_fp)
-    low = _group_percentile(building, z, params.ground_percentile, n_fp)
 
-    if kept is not None and params.quantize_rgb and kept.has_rgb:
-        rgb8 = kept.rgb8()
-        for k, name in enumerate(("red", "green", "blue")):
-            kept.attrs[name] = rgb8[:, k].astype(np.uint16) * np.uint16(257)
-    if kept is not None and params.distance_dim:
-        kept.attrs[DISTANCE_DIM] = distance.astype(np.float32)
-        if DISTANCE_DIM not in kept.extra_dims:
-            kept.extra_dims = [*kept.extra_dims, DISTANCE_DIM]
+def canonical_order(columns: dict[str, np.ndarray]) -> np.ndarray:
+    """The order that sorts points by x, y, z, then every attribute: a building's points come out in the same
+    order however the input was tiled, chunked or read (results must not change with tile edges)."""
+    keys = [columns[name] for name in sorted(columns) if name != "xyz" and columns[name].ndim == 1]
+    xyz = columns["xyz"]
+    return np.lexsort([*keys[::-1], xyz[:, 2], xyz[:, 1], xyz[:, 0]])
 
-    order = np.argsort(building, kind="stable")
-    starts = np.cumsum(counts) - counts
-    buildings: list[BuildingPoints] = []
-    written = np.zeros(len(building), dtype=bool) if kept is not None else None
-    for i in range(n_fp):
-        fid = fps.ids[i]
-        if acc.excluded[i]:
-            continue
-        props = fps.properties[i]
-        status = props.get(params.status_field)
-        if counts[i] == 0:
-            dropped[fid] = f"no points within {params.buffer:g} m"
-            continue
-        given = _property_height(props, params.height_field)
-        if given is not None:
-            height, source = given, "footprint"
-            ground_z_i = float(ground[i]) if np.isfinite(ground[i]) else float(low[i])
-        elif counts_inside[i] == 0:
-            dropped[fid] = "no points inside the footprint (height unknown)"
-            continue
-        elif np.isfinite(ground[i]):
-            height, source, ground_z_i = float(roof[i] - ground[i]), "points", float(ground[i])
-        else:
-            height, source, ground_z_i = float(roof[i] - low[i]), "points-no-ground", float(low[i])
-        if height < params.min_height:
-            dropped[fid] = f"lower than {params.min_height:g} m ({height:.2f} m, {source})"
-            continue
-        rows = order[starts[i]:starts[i] + counts[i]]
-        written[rows] = True
-        buildings.append(BuildingPoints(
-            id=fid, cloud=kept.subset(rows), footprint=fps.polygons[i], properties=dict(props), height=height,
-            height_source=source, ground_z=ground_z_i, points_inside=int(counts_inside[i]),
-            status=None if status is None else str(status)))
 
-    if buildings:
-        frame = LocalFrame.around(kept.xyz[written], rotation_deg=params.rotation_deg)
-    else:
-        x0, y0, _, _ = fps.bounds
-        frame = LocalFrame(offset=(math.floor(x0), math.floor(y0), 0.0), rotation_deg=params.rotation_deg)
-    return PrepResult(buildings=buildings, dropped=dropped, frame=frame, crs=crs, params=params,
-                      points_read=acc.points_read, points_kept=int(sum(len(b) for b in buildings)),
-                      footprints=n_fp, sources=sources, footprint_source=fps.source, seconds=seconds)
+@dataclasses.dataclass(kw_only=True)
+class SpooledPrep(PrepSummary):
+    """Prep's result with the points still in the spool: per building an entry; :meth:`load` reads one building
+    (memory: that building), :meth:`context` the other kept points around it. :meth:`close` removes the spool."""
+
+    entries: list[BuildingEntry]
+    spool: Any
+    names: list[str]
+    extra_dims: list[str]
+    rgb16: bool
+    ground: Any = None
+
+    def _cloud(self, keys: Sequence[int]) -> PointCloud:
+        cols = self.spool.get_many(list(keys), [*self.names])
+        order = canonical_order({k: v for k, v in cols.items() if k != _DISTANCE})
+        cols = {k: v[order] for k, v in cols.items()}
+        distance = cols.pop(_DISTANCE)
+        xyz = cols.pop("xyz")
+        extra = list(self.extra_dims)
+        if self.params.quantize_rgb and self.rgb16:
+            for name in ("red", "green", "blue"):
+                cols[name] = (cols[name] // 257).astype(np.uint16) * np.uint16(257)  # as PointCloud.rgb8
+        elif self.params.quantize_rgb and "red" in cols:
+            for name in ("red", "green", "blue"):
+                cols[name] = cols[name].astype(np.uint8).astype(np.uint16) * np.uint16(257)
+        if self.params.distance_dim:
+            cols[DISTANCE_DIM] = distance.astype(np.float32)
+            extra.append(DISTANCE_DIM)
+        return PointCloud(xyz=xyz, attrs=cols, crs=self.crs, extra_dims=extra,
+                          source=self.sources[0] if self.sources else None)
+
+    def load(self, k: int) -> BuildingPoints:
+        """Building ``k`` (index into ``entries``) with its points in :func:`canonical_order`."""
+        e = self.entries[k]
+        return BuildingPoints(id=e.id, cloud=self._cloud([e.key]), footprint=e.footprint,
+                              properties=dict(e.properties), height=e.height, height_source=e.height_source,
+                              ground_z=e.ground_z, points_inside=e.points_inside, status=e.status)
+
+    def bounds_of(self, members: Sequence[int]) -> tuple[float, float, float, float]:
+        """The union of the bounds of some entries' points."""
+        b = np.array([self.entries[k].bounds for k in members])
+        return float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max())
+
+    def neighbours(self, members: Sequence[int], halo: float) -> list[int]:
+        """Entries (other than ``members``) whose points' bounds come within ``halo`` of the members' bounds."""
+        x0, y0, x1, y1 = self.bounds_of(members)
+        taken = set(members)
+        return [j for j, e in enumerate(self.entries) if j not in taken and e.bounds[0] <= x1 + halo
+                and e.bounds[2] >= x0 - halo and e.bounds[1] <= y1 + halo and e.bounds[3] >= y0 - halo]
+
+    def context(self, members: Sequence[int], halo: float) -> PointCloud | None:
+        """The kept points of the other buildings within ``halo`` of the bounds of ``members`` (entry indices):
+        segmentation context, or ``None`` when there are none."""
+        near = self.neighbours(members, halo)
+        if not near:
+            return None
+        cloud = self._cloud([self.entries[j].key for j in near])
+        x0, y0, x1, y1 = self.bounds_of(members)
+        xy = cloud.xyz[:, :2]
+        inside = (xy[:, 0] >= x0 - halo) & (xy[:, 0] <= x1 + halo) & (xy[:, 1] >= y0 - halo) & (xy[:, 1] <= y1 + halo)
+        return cloud.subset(np.flatnonzero(inside)) if inside.any() else None
+
+    def materialise(self) -> PrepResult:
+        """Every building loaded into a :class:`PrepResult` (memory: all kept points)."""
+        return PrepResult(buildings=[self.load(k) for k in range(len(self.entries))], dropped=dict(self.dropped),
+                          frame=self.frame, crs=self.crs, params=self.params, points_read=self.points_read,
+                          points_kept=self.points_kept, footprints=self.footprints, sources=list(self.sources),
+                          footprint_source=self.footprint_source, seconds=self.seconds)
+
+    def close(self) -> None:
+        self.spool.close()
+        if self.ground is not None:
+            self.ground.close()
 
 
 def _footprints_in(footprints: Footprints, crs: CRS | None) -> Footprints:
@@ -621,7 +717,7 @@ def prep_cloud(cloud: PointCloud, footprints: Footprints, params: PrepParams | N
     for start in range(0, len(cloud), params.chunk_points):
         acc.add(cloud.subset(slice(start, start + params.chunk_points)) if len(cloud) > params.chunk_points
                 else cloud)
-    return acc.finish(cloud.crs, [cloud.source] if cloud.source else [], time.perf_counter() - clock)
+    return acc.finish(cloud.crs, [cloud.source] if cloud.source else [], time.perf_counter() - clock).materialise()
 
 
 def split_buildings(cloud: PointCloud, footprints: Footprints, params: PrepParams | None = None) -> list[BuildingPoints]:
@@ -711,12 +807,14 @@ def _prefetch(chunks: Iterator[PointCloud]) -> Iterator[PointCloud]:
             chunks.close()
 
 
-def prep_tiles(paths: Sequence[str | Path], footprints: Footprints, params: PrepParams | None = None,
-               crs: str | CRS | None = None, progress: Callable[[int], None] | None = None) -> PrepResult:
-    """Stream any number of tiles (chunks of ``params.chunk_points``) and split them into buildings.
+def stream_tiles(paths: Sequence[str | Path], footprints: Footprints, params: PrepParams | None = None,
+                 crs: str | CRS | None = None, progress: Callable[[int], None] | None = None,
+                 work_dir: str | Path | None = None) -> SpooledPrep:
+    """Stream any number of tiles (chunks of ``params.chunk_points``) into a spool of the points kept per footprint.
 
-    ``crs`` is used for tiles without a CRS record; footprints in another CRS are reprojected to the tiles'.
-    ``progress`` is called with the number of points of every chunk read. Raises :class:`InputError` /
+    With ``work_dir`` the spool lives on disk there (memory: a chunk and a spool buffer, whatever the input size);
+    without, in memory. ``crs`` is used for tiles without a CRS record; footprints in another CRS are reprojected to
+    the tiles'. ``progress`` is called with the number of points of every chunk read. Raises :class:`InputError` /
     :class:`CRSError` naming the file for unreadable tiles, CRS conflicts and footprints that miss the points.
     """
     params = params or PrepParams()
@@ -724,17 +822,32 @@ def prep_tiles(paths: Sequence[str | Path], footprints: Footprints, params: Prep
     tiles = scan_tiles(paths, crs)
     footprints = _footprints_in(footprints, tiles.crs)
     check_overlap(footprints, tiles.bounds, tiles.name)
-    acc = _Accumulator(footprints, params)
+    acc = _Accumulator(footprints, params, None if work_dir is None else Path(work_dir))
 
     def chunks() -> Iterator[PointCloud]:
         for tile in tiles.paths:
             yield from iter_las(tile, chunk_size=params.chunk_points, crs=crs)
 
-    for chunk in _prefetch(chunks()):
-        acc.add(chunk)
-        if progress is not None:
-            progress(len(chunk))
-    return acc.finish(tiles.crs, [str(p) for p in tiles.paths], time.perf_counter() - clock)
+    try:
+        for chunk in _prefetch(chunks()):
+            acc.add(chunk)
+            if progress is not None:
+                progress(len(chunk))
+        return acc.finish(tiles.crs, [str(p) for p in tiles.paths], time.perf_counter() - clock)
+    except BaseException:
+        acc.points.close()
+        acc.ground.close()
+        raise
+
+
+def prep_tiles(paths: Sequence[str | Path], footprints: Footprints, params: PrepParams | None = None,
+               crs: str | CRS | None = None, progress: Callable[[int], None] | None = None) -> PrepResult:
+    """:func:`stream_tiles` in memory, every building loaded (see :class:`SpooledPrep` for bounded memory)."""
+    spooled = stream_tiles(paths, footprints, params, crs, progress)
+    try:
+        return spooled.materialise()
+    finally:
+        spooled.close()
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -171,6 +171,8 @@ def _toml(tmp_path: Path, text: str) -> Path:
     (["--stages", "densify,paint"], "unknown stage(s) paint"),
     (["--method", "magic"], "method must be pointnet2 or baseline"),
     (["--mesh", "clay"], "mesh must be one of surface, voxels"),
+    (["--workers", "0"], "workers must be at least 1"),
+    (["--scheduler", "10.0.0.5"], "scheduler address '10.0.0.5' must look like tcp://HOST:PORT"),
 ])
 def test_run_refuses_bad_options_in_one_line(city: Path, tmp_path: Path, args: list[str], expected: str) -> None:
     result = run_cli("run", str(city / "als.laz"), "-f", str(city / "footprints.geojson"), "-o",

@@ -18,8 +18,8 @@ from lidarmap.frame import LocalFrame
 from lidarmap.io.footprints import Footprints, read_footprints, write_geojson_wgs84
 from lidarmap.io.las import read_las, write_las
 from lidarmap.io.pointcloud import PointCloud
-from lidarmap.prep import (FootprintIndex, PrepParams, assign_points, prep_cloud, prep_tiles, read_prep_index,
-                           write_prep)
+from lidarmap.prep import (FootprintIndex, PrepParams, assign_points, canonical_order, prep_cloud, prep_tiles,
+                           read_prep_index, write_prep)
 
 UTM32 = CRS.from_epsg(32632)
 RD = "EPSG:28992"
@@ -186,6 +186,8 @@ def test_rgb_quantised_to_8_bits_and_frame_maps_back_exactly(tmp_path: Path) -> 
     rgb = np.stack([tall.cloud.attrs[c] for c in ("red", "green", "blue")], axis=1)
     assert np.all(rgb % 257 == 0) and rgb.max() <= 65535
     source = cloud.subset(np.isin(cloud.xyz[:, 0], tall.cloud.xyz[:, 0]))
+    source = source.subset(canonical_order({"xyz": source.xyz, **source.attrs}))  # prep's point order
+    np.testing.assert_array_equal(tall.cloud.xyz, source.xyz)
     np.testing.assert_array_equal(tall.rgb8(), source.rgb8())  # v16 // 257, exactly
     out = write_prep(tmp_path / "prep", result)
     frame_doc = json.loads((out / "frame.json").read_text())
@@ -209,8 +211,11 @@ def test_tiles_merged_while_streaming_equal_one_cloud(tmp_path: Path) -> None:
     merged = prep_tiles(tiles, fps, PrepParams(min_height=0.0, chunk_points=1_000))
     assert merged.points_read == len(cloud)
     assert [b.id for b in merged.buildings] == [b.id for b in whole.buildings]
-    for a, b in zip(merged.buildings, whole.buildings):
-        np.testing.assert_array_equal(np.sort(a.cloud.xyz[:, 0]), np.sort(b.cloud.xyz[:, 0]))
+    for a, b in zip(merged.buildings, whole.buildings):  # same points in the same (canonical) order
+        np.testing.assert_array_equal(a.cloud.xyz, b.cloud.xyz)
+        for name in b.cloud.attrs:
+            np.testing.assert_array_equal(a.cloud.attrs[name], b.cloud.attrs[name])
+        assert (a.height, a.ground_z) == (b.height, b.ground_z)
     tall = merged.buildings[0].cloud.xyz[:, 0] - X0
     assert tall.min() < 12 < tall.max()  # points from both tiles
 

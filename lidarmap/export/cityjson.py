@@ -33,6 +33,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import tempfile
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -43,11 +45,11 @@ from shapely.geometry import Polygon, box
 from shapely.geometry.polygon import orient
 
 from lidarmap.export.summary import COUNT_KEYS, count_buildings
-from lidarmap.io.atomic import write_text_atomic
+from lidarmap.io.atomic import atomic_path, write_text_atomic
 from lidarmap.model import Building, BuildingMap, Element, ElementKind, Facade
 
 __all__ = ["CITYJSON_VERSION", "SCALE", "map_to_cityjson", "write_cityjson", "reference_system",
-           "HEIGHT_ATTRIBUTES", "GROUND_ATTRIBUTES", "AerialBuilding", "aerial_to_cityjson"]
+           "HEIGHT_ATTRIBUTES", "GROUND_ATTRIBUTES", "AerialBuilding", "write_aerial_cityjson"]
 
 CITYJSON_VERSION = "2.0"
 #: Vertex quantum (CRS units, metres): integer vertices times SCALE plus translate give the coordinates.
@@ -109,9 +111,10 @@ def _parts(geom: Any) -> list[Polygon]:
 class _Vertices:
     """Quantised, de-duplicated vertices shared by every city object of the document."""
 
-    def __init__(self, translate: np.ndarray, scale: float):
+    def __init__(self, translate: np.ndarray, scale: float, base: int = 0):
         self.translate = translate
         self.scale = scale
+        self.base = base  # index of this list's first vertex in the document (streamed documents)
         self.index: dict[tuple[int, int, int], int] = {}
         self.list: list[list[int]] = []
 
@@ -122,7 +125,7 @@ class _Vertices:
         for v in map(tuple, q.tolist()):
             i = self.index.get(v)  # type: ignore[arg-type]
             if i is None:
-                i = self.index[v] = len(self.list)  # type: ignore[index]
+                i = self.index[v] = self.base + len(self.list)  # type: ignore[index]
                 self.list.append(list(v))
             if not out or out[-1] != i:
                 out.append(i)
@@ -481,30 +484,85 @@ def _mesh_solid(v: _Vertices, vertices: np.ndarray, faces: np.ndarray) -> dict[s
                           "values": [values]}}
 
 
-def aerial_to_cityjson(buildings: list[AerialBuilding], crs_wkt: str, scale: float = SCALE,
-                       title: str = "lidarmap aerial reconstruction") -> dict[str, Any]:
-    """CityJSON 2.0 of the aerial pipeline's buildings: per building an LoD1 block (footprint extruded from its
-    ground height by its height) and the reconstructed mesh as an LoD2.2 solid, attributes kept."""
-    pts = [b.mesh_vertices for b in buildings if len(b.mesh_vertices)]
-    translate = np.floor(np.vstack(pts).min(axis=0)) if pts else np.zeros(3)
-    vertices = _Vertices(translate, float(scale))
-    objects: dict[str, Any] = {}
-    for b in buildings:
-        geometry = []
-        if math.isfinite(b.ground_z) and math.isfinite(b.height) and b.height > 0:
-            block = _lod1(vertices, Building(building_id=b.id, footprint=b.footprint,
-                                             attributes={"height": b.height, "ground_z": b.ground_z}))
-            if block is not None:
-                geometry.append(block)
-        solid = _mesh_solid(vertices, np.asarray(b.mesh_vertices, np.float64), np.asarray(b.mesh_faces, np.int64))
-        if solid is not None:
-            geometry.append(solid)
-        attributes = _json_safe({**b.attributes, "measuredHeight": b.height})
-        obj: dict[str, Any] = {"type": "Building", "attributes": attributes}
-        if geometry:
-            obj["geometry"] = geometry
-        objects[str(b.id)] = obj
-    return _document(vertices, objects, _metadata(vertices, crs_wkt, title))
+def _aerial_object(vertices: _Vertices, b: AerialBuilding) -> dict[str, Any]:
+    """One aerial building: an LoD1 block (footprint extruded from its ground height by its height) and the
+    reconstructed mesh as an LoD2.2 solid, attributes kept."""
+    geometry = []
+    if math.isfinite(b.ground_z) and math.isfinite(b.height) and b.height > 0:
+        block = _lod1(vertices, Building(building_id=b.id, footprint=b.footprint,
+                                         attributes={"height": b.height, "ground_z": b.ground_z}))
+        if block is not None:
+            geometry.append(block)
+    solid = _mesh_solid(vertices, np.asarray(b.mesh_vertices, np.float64), np.asarray(b.mesh_faces, np.int64))
+    if solid is not None:
+        geometry.append(solid)
+    obj: dict[str, Any] = {"type": "Building", "attributes": _json_safe({**b.attributes, "measuredHeight": b.height})}
+    if geometry:
+        obj["geometry"] = geometry
+    return obj
+
+
+def _dump(value: Any) -> str:
+    return json.dumps(value, ensure_ascii=False, allow_nan=False, separators=(",", ":"))
+
+
+def _remap(boundaries: Any, new_index: np.ndarray) -> Any:
+    """Nested boundary lists with every vertex index replaced by ``new_index[index]``."""
+    if boundaries and isinstance(boundaries[0], int):
+        return new_index[np.asarray(boundaries, dtype=np.int64)].tolist()
+    return [_remap(part, new_index) for part in boundaries]
+
+
+def write_aerial_cityjson(path: str | Path, buildings: Iterable[AerialBuilding], crs_wkt: str,
+                          translate: Sequence[float], scale: float = SCALE,
+                          title: str = "lidarmap aerial reconstruction") -> Path:
+    """Stream the aerial pipeline's buildings into a CityJSON 2.0 file with bounded memory (a city of thousands of
+    buildings would not fit as one document of Python objects).
+
+    Pass 1 builds one building at a time and spills its object (JSON lines) and its quantised vertices (int64) to
+    side files. Then the vertices shared between buildings (neighbouring row houses) are merged with numpy (first
+    occurrence order) and pass 2 writes the objects with their indices remapped, then the vertices. Memory: one
+    building plus 8 bytes x 4 per vertex of the city. ``translate`` (the transform, CRS units) is given up front,
+    e.g. the buildings' minimum corner. Written atomically.
+    """
+    translate = np.asarray(translate, dtype=np.float64)
+    head = {"type": "CityJSON", "version": CITYJSON_VERSION,
+            "transform": {"scale": [float(scale)] * 3, "translate": [float(x) for x in translate]}}
+    with tempfile.TemporaryFile("w+", encoding="utf-8") as objects, tempfile.TemporaryFile("w+b") as raw:
+        count = 0
+        for b in buildings:
+            vertices = _Vertices(translate, float(scale), base=count)
+            objects.write(_dump([str(b.id), _aerial_object(vertices, b)]) + "\n")
+            if vertices.list:
+                raw.write(np.asarray(vertices.list, dtype=np.int64).tobytes())
+                count += len(vertices.list)
+        raw.seek(0)
+        quantised = np.frombuffer(raw.read(), dtype=np.int64).reshape(-1, 3)
+        unique, first, inverse = np.unique(quantised, axis=0, return_index=True, return_inverse=True)
+        order = np.argsort(first, kind="stable")  # keep the order of first appearance
+        rank = np.empty(len(order), dtype=np.int64)
+        rank[order] = np.arange(len(order))
+        new_index, unique = rank[inverse.ravel()], unique[order]
+        metadata: dict[str, Any] = {"title": title}
+        ref = reference_system(crs_wkt)
+        if ref is not None:
+            metadata["referenceSystem"] = ref
+        if len(unique):
+            lo, hi = unique.min(axis=0) * scale + translate, unique.max(axis=0) * scale + translate
+            metadata["geographicalExtent"] = [float(x) for x in (*lo, *hi)]
+        objects.seek(0)
+        with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as out:
+            out.write(_dump({**head, "metadata": metadata})[:-1] + ',"CityObjects":{')
+            for n, line in enumerate(objects):
+                oid, obj = json.loads(line)
+                for geometry in obj.get("geometry", []):
+                    geometry["boundaries"] = _remap(geometry["boundaries"], new_index)
+                out.write(("," if n else "") + _dump(oid) + ":" + _dump(obj))
+            out.write('},"vertices":[')
+            for start in range(0, len(unique), 100_000):
+                out.write(("," if start else "") + _dump(unique[start:start + 100_000].tolist())[1:-1])
+            out.write("]}")
+    return Path(path)
 
 
 def write_cityjson(path: str | Path, doc: dict[str, Any]) -> Path:

@@ -13,6 +13,7 @@ import contextlib
 import dataclasses
 import math
 import os
+import weakref
 from collections.abc import Callable, Iterator
 
 import numpy as np
@@ -123,10 +124,13 @@ def window_weight(offset: np.ndarray, half: float, how: str) -> np.ndarray:
 Window = tuple[np.ndarray, np.ndarray]  # (centre (2,), member indices)
 
 
-def plan_windows(pf: PointFeatures, model: SegmentModel, params: PredictParams) -> list[Window]:
-    """The non-empty windows (centre, member indices) that cover every point."""
+def plan_windows(pf: PointFeatures, model: SegmentModel, params: PredictParams,
+                 targets: np.ndarray | None = None) -> list[Window]:
+    """The non-empty windows (centre, member indices) that cover every point (or every point of ``targets``; the
+    windows still hold every point in them, the others being context)."""
     spec = model.spec
-    centres = window_centres(pf.xyz[:, :2], spec.block_size, params.overlap)
+    cover = pf.xyz[:, :2] if targets is None else pf.xyz[targets, :2]
+    centres = window_centres(cover, spec.block_size, params.overlap)
     members = column_members(cKDTree(pf.xyz[:, :2]), centres, spec.block_size / 2)
     return [(c, m) for c, m in zip(centres, members) if len(m)]
 
@@ -154,9 +158,11 @@ def window_batches(pf: PointFeatures, model: SegmentModel, params: PredictParams
         yield index, weight, np.stack([x for x, _ in inputs]), np.stack([f for _, f in inputs])
 
 
-def spread_to_all(xyz: np.ndarray, fed: np.ndarray, prob: np.ndarray) -> np.ndarray:
-    """Probabilities of points not fed to the network: inverse-square-distance mean of the 3 nearest fed points."""
-    missing = np.flatnonzero(~fed)
+def spread_to_all(xyz: np.ndarray, fed: np.ndarray, prob: np.ndarray, targets: np.ndarray | None = None
+                  ) -> np.ndarray:
+    """Probabilities of points not fed to the network (of ``targets`` only, when given): inverse-square-distance
+    mean of the 3 nearest fed points."""
+    missing = np.flatnonzero(~fed if targets is None else ~fed & targets)
     if len(missing) == 0:
         return prob
     known = np.flatnonzero(fed)
@@ -169,18 +175,35 @@ def spread_to_all(xyz: np.ndarray, fed: np.ndarray, prob: np.ndarray) -> np.ndar
     return out
 
 
+_FUSED: "weakref.WeakKeyDictionary[torch.nn.Module, tuple[tuple, torch.device, torch.nn.Module]]" = \
+    weakref.WeakKeyDictionary()
+
+
+def inference_net(model: SegmentModel, device: torch.device) -> torch.nn.Module:
+    """The model's network with batch norms fused, on ``device``; cached (a city runs one small prediction per
+    building), and rebuilt when the weights changed since (training validates as it goes)."""
+    version = tuple(p._version for p in model.net.parameters())
+    cached = _FUSED.get(model.net)
+    if cached is not None and cached[0] == version and cached[1] == device:
+        return cached[2]
+    net = model.net.fused().to(device)
+    _FUSED[model.net] = (version, device, net)
+    return net
+
+
 def predict_pointnet2(cloud: PointCloud, model: SegmentModel, params: PredictParams = PredictParams(),
-                      report: Report | None = None) -> np.ndarray:
-    """Building probability (float32, N) of every point of ``cloud``."""
-    if len(cloud) == 0:
-        return np.zeros(0, np.float32)
+                      report: Report | None = None, targets: np.ndarray | None = None) -> np.ndarray:
+    """Building probability (float32) of every point of ``cloud``, or of the points of the boolean mask
+    ``targets`` only (the windows cover them; the other points are context)."""
+    if len(cloud) == 0 or (targets is not None and not targets.any()):
+        return np.zeros(0 if targets is None else int(targets.sum()), np.float32)
     pf = point_features(cloud, model.spec)
     rng = np.random.default_rng(params.seed)
     device = pick_device(params.device)
-    net = model.net.fused().to(device)
+    net = inference_net(model, device)
     total = np.zeros(len(cloud))
     count = np.zeros(len(cloud))
-    windows = plan_windows(pf, model, params)
+    windows = plan_windows(pf, model, params, targets)
     n_batches = math.ceil(len(windows) / windows_per_batch(params))
     with torch_threads(params.threads), torch.inference_mode():
         for done, (index, weight, xyz, channels) in enumerate(window_batches(pf, model, params, windows, rng), 1):
@@ -192,20 +215,22 @@ def predict_pointnet2(cloud: PointCloud, model: SegmentModel, params: PredictPar
             if report:
                 report(done, n_batches)
     fed = count > 0
-    prob = np.divide(total, count, out=np.zeros(len(cloud)), where=fed)
-    return spread_to_all(pf.xyz, fed, prob).astype(np.float32)
+    prob = spread_to_all(pf.xyz, fed, np.divide(total, count, out=np.zeros(len(cloud)), where=fed), targets)
+    return (prob if targets is None else prob[targets]).astype(np.float32)
 
 
 def predict(cloud: PointCloud, model: object, params: PredictParams = PredictParams(),
-            report: Report | None = None) -> np.ndarray:
-    """Building probabilities (float32, N) from a PointNet++ :class:`SegmentModel` or a baseline model."""
+            report: Report | None = None, targets: np.ndarray | None = None) -> np.ndarray:
+    """Building probabilities (float32) from a PointNet++ :class:`SegmentModel` or a baseline model: of every
+    point, or of the points of the boolean mask ``targets`` (the others are context)."""
     from lidarmap.segment.baseline import BaselineModel, predict_baseline
 
     if isinstance(model, BaselineModel):
         with torch_threads(params.threads):
-            return predict_baseline(cloud, model)
+            prob = predict_baseline(cloud, model)
+        return prob if targets is None else prob[targets]
     if isinstance(model, SegmentModel):
-        return predict_pointnet2(cloud, model, params, report)
+        return predict_pointnet2(cloud, model, params, report, targets)
     raise TypeError(f"not a segmentation model: {type(model).__name__}")
 
 

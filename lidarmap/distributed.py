@@ -1,0 +1,163 @@
+"""Where the per-tile and per-building tasks run: this process, a local dask cluster, or a remote dask scheduler.
+
+``lidarmap run`` and ``lidarmap map update`` describe their work as independent tasks (a pure function of a
+payload) and hand them to :func:`map_tasks`, which runs them
+
+- in this process when ``workers == 1`` and no scheduler is given (nothing of dask is imported);
+- on a ``dask.distributed.LocalCluster`` of ``workers`` processes (one thread each) started for the call;
+- on the cluster behind ``scheduler`` (``tcp://host:8786``), started by the user with ``dask scheduler`` and
+  ``dask worker`` (docs/cluster.md).
+
+The caller stays the only writer: results come back to it and it writes them (output folders, the map
+transaction). Payloads travel with the tasks, so workers need no access to this machine's files.
+
+Failures: a worker that dies mid-task has its task rescheduled on another worker by the scheduler (dask's
+``distributed.scheduler.allowed-failures``, default 3). A task whose function raises is not retried (the same data
+fails the same way): the wrapper turns the exception into a :class:`TaskFailure` that the caller reports, and the
+other tasks go on. Only ``max_in_flight`` tasks are submitted at a time, so the caller's memory stays bounded by
+that many payloads and results whatever the number of tasks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import uuid
+import warnings
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any
+
+from lidarmap.errors import ConfigError, LidarmapError
+
+__all__ = ["TaskFailure", "run_task", "map_tasks", "cluster_client", "check_cluster_params"]
+
+#: Seconds to wait for a remote scheduler before giving up with a one-line error.
+CONNECT_TIMEOUT_S = 20
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskFailure:
+    """Why one task produced no result (one line)."""
+
+    reason: str
+
+
+def run_task(fn: Callable[..., Any], payload: Any, *shared: Any) -> Any:
+    """``fn(payload, *shared)``, or a :class:`TaskFailure` carrying the error: bad data in one building must not
+    stop a city. Our own errors keep their one-line message; anything else is named by its type."""
+    try:
+        return fn(payload, *shared)
+    except LidarmapError as exc:
+        return TaskFailure(getattr(exc, "problem", str(exc)))
+    except (MemoryError, ValueError, ArithmeticError, IndexError, KeyError, RuntimeError, TypeError,
+            AssertionError) as exc:  # a bug or bad data in one task; reported, never silently dropped
+        return TaskFailure(f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}")
+
+
+def check_cluster_params(workers: int, scheduler: str) -> None:
+    if workers < 1:
+        raise ConfigError("workers must be at least 1")
+    if scheduler and not scheduler.startswith(("tcp://", "tls://", "inproc://", "ucx://")):
+        raise ConfigError(f"scheduler address {scheduler!r} must look like tcp://HOST:PORT")
+
+
+@contextlib.contextmanager
+def cluster_client(workers: int, scheduler: str) -> Iterator[Any]:
+    """A dask Client: connected to ``scheduler``, or to a LocalCluster of ``workers`` single-threaded processes."""
+    check_cluster_params(workers, scheduler)
+    from dask.distributed import Client, LocalCluster
+
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+        except (OSError, TimeoutError) as exc:
+            raise ConfigError(f"cannot reach the dask scheduler at {scheduler} ({' '.join(str(exc).split())[:120]})"
+                              ) from None
+        with client:
+            yield client
+        return
+    # one BLAS/torch thread per worker process: workers x threads must not exceed the cores
+    env = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    with contextlib.ExitStack() as stack:
+        cluster = stack.enter_context(LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                                   dashboard_address=None, silence_logs=logging.ERROR,
+                                                   env=env))
+        yield stack.enter_context(Client(cluster))
+
+
+def _identity(obj: Any) -> Any:
+    return obj
+
+
+def _worker_count(client: Any) -> int:
+    try:
+        return max(1, len(client.scheduler_info().get("workers", {})))
+    except (OSError, TimeoutError):
+        return 1
+
+
+def map_tasks(fn: Callable[..., Any], payloads: Iterable[Any], workers: int = 1, scheduler: str = "",
+              max_in_flight: int | None = None, client: Any = None, shared: tuple = ()) -> Iterator[tuple[int, Any]]:
+    """(number, result) of ``fn(payload, *shared)`` on every payload: results or :class:`TaskFailure`, in
+    completion order (in payload order when serial).
+
+    ``payloads`` is consumed lazily (at most ``max_in_flight`` submitted and not yet collected; default twice the
+    number of workers, at least 2). ``shared`` objects (a model) are sent to every worker once, not per task.
+    ``client`` reuses an open client (see :func:`cluster_client`).
+    """
+    if client is None and workers == 1 and not scheduler:
+        for number, payload in enumerate(payloads):
+            yield number, run_task(fn, payload, *shared)
+        return
+    with contextlib.ExitStack() as stack:
+        if client is None:
+            client = stack.enter_context(cluster_client(workers, scheduler))
+        yield from _map_on(client, fn, payloads, max_in_flight, shared)
+
+
+def _map_on(client: Any, fn: Callable[..., Any], payloads: Iterable[Any], max_in_flight: int | None,
+            shared: tuple) -> Iterator[tuple[int, Any]]:
+    from dask.distributed import as_completed
+    from distributed.scheduler import KilledWorker
+
+    limit = max_in_flight or max(2, 2 * _worker_count(client))
+    # shared objects enter the graph as the result of a task (not scattered): the scheduler keeps the object and
+    # recomputes the task on another worker if the one holding its result dies
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*[Ll]arge object.*")
+        warnings.filterwarnings("ignore", message=".*[Ss]ending large graph.*")
+        shared_data = [client.submit(_identity, obj, pure=False, key=f"shared-{uuid.uuid4().hex[:12]}-{i}")
+                       for i, obj in enumerate(shared)]
+    numbers: dict[Any, int] = {}
+    pending = as_completed()
+    source = enumerate(payloads)
+    prefix = f"{getattr(fn, '__name__', 'task')}-{uuid.uuid4().hex[:12]}"
+
+    def submit_next() -> bool:
+        # the payload travels inside the task (held by the scheduler), not scattered: scattered data dies with the
+        # worker holding it, and the task could not be rescheduled
+        for number, payload in source:
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message=".*[Ll]arge object.*")
+                warnings.filterwarnings("ignore", message=".*[Ss]ending large graph.*")
+                future = client.submit(run_task, fn, payload, *shared_data, pure=False, key=f"{prefix}-{number}")
+            numbers[future] = number
+            pending.add(future)
+            return True
+        return False
+
+    for _ in range(limit):
+        if not submit_next():
+            break
+    for future in pending:
+        number = numbers.pop(future)
+        try:
+            result = future.result()
+        except KilledWorker:
+            result = TaskFailure("the workers running it died too often (dask allowed-failures); out of memory?")
+        except Exception as exc:  # noqa: BLE001 - a task the wrapper could not catch (e.g. unpicklable result)
+            result = TaskFailure(f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}")
+        future.release()
+        yield number, result
+        submit_next()
