@@ -30,12 +30,10 @@ from lidarmap.errors import CRSError, InputError
 from lidarmap.facade_layers import (DepthGrid, assign_layers, close_sampling_gaps, depth_grid, fit_layers,
                                     grid_shape, grow_regions, mask_to_polygons, outline_polygon, square,
                                     uncertainty_eq1)
-from lidarmap.facade_occlusion import (occlusion_mask, project_rays, reach_limits, reach_mask, sample_spacing,
-                                       through_cells)
-from lidarmap.facade_planes import (PlaneGroup, boundary_distance, building_mask, check_points, estimate_normals,
-                                    fit_facade_frame, fit_line_2d, footprint_edges, ground_mask, group_planes,
-                                    join_footprints, match_footprint_edge, ransac_vertical_planes,
-                                    region_growing_vertical_planes, voxel_subsample)
+from lidarmap.facade_occlusion import occlusion_mask, project_rays, reach_mask, sample_spacing, through_cells
+from lidarmap.facade_planes import (PlaneGroup, boundary_distance, check_points, estimate_normals, fit_facade_frame,
+                                    fit_line_2d, footprint_edges, group_planes, join_footprints, match_footprint_edge,
+                                    ransac_vertical_planes, region_growing_vertical_planes, voxel_subsample)
 from lidarmap.facade_windows import (HOLE, OBJECT, OCCLUDED, Opening, complete_by_repetition, detect_openings,
                                      fit_rectangle, refine_bounds, window_uncertainty_eq3)
 from lidarmap.io.footprints import Footprints
@@ -49,6 +47,7 @@ __all__ = [
     "assign_layers", "occlusion_mask", "through_cells", "reach_mask", "project_rays", "detect_openings",
     "fit_rectangle", "refine_bounds", "complete_by_repetition", "uncertainty_eq1", "window_uncertainty_eq3",
     "value_grid", "footprint_edges", "Opening", "HOLE", "OCCLUDED", "OBJECT", "check_same_crs", "join_campaign",
+    "campaign_data", "campaign_track", "no_join_error",
 ]
 
 
@@ -289,11 +288,19 @@ class FacadeParams:
 
 
 class _XYIndex:
-    """Points binned on an xy grid (sorted by bin) for fast box queries."""
+    """Points binned on an xy grid (sorted by bin) for fast box queries.
 
-    def __init__(self, xy: np.ndarray, bin_size: float):
+    With a fixed ``origin`` (the campaign's) the bins, and so which points a box query returns and in what order,
+    are the same for any part of the campaign that holds the queried bins: a building's context answers like the
+    whole campaign.
+    """
+
+    def __init__(self, xy: np.ndarray, bin_size: float, origin: np.ndarray | None = None):
         self.bin = float(bin_size)
-        self.lo = xy.min(axis=0) if len(xy) else np.zeros(2)
+        if origin is not None:
+            self.lo = np.asarray(origin, dtype=np.float64)[:2]
+        else:
+            self.lo = xy.min(axis=0) if len(xy) else np.zeros(2)
         ij = np.floor((xy - self.lo) / self.bin).astype(np.int64)
         self.shape = (ij.max(axis=0) + 1) if len(xy) else np.array([1, 1])
         keys = ij[:, 0] * self.shape[1] + ij[:, 1]
@@ -371,7 +378,8 @@ class CampaignData:
     source: str | None = None
 
 
-def _campaign_track(trajectory: Trajectory, t_min: float, t_max: float, step: float) -> np.ndarray:
+def campaign_track(trajectory: Trajectory, t_min: float, t_max: float, step: float) -> np.ndarray:
+    """The trajectory over the campaign's time span, sampled every ``step`` metres (the reach test's positions)."""
     inside = (trajectory.time > t_min) & (trajectory.time < t_max)
     times = np.concatenate([[t_min], trajectory.time[inside], [t_max]])
     pos = trajectory.position_at(np.clip(times, trajectory.time[0], trajectory.time[-1]))
@@ -383,40 +391,49 @@ def _campaign_track(trajectory: Trajectory, t_min: float, t_max: float, step: fl
     return trajectory.position_at(np.clip(samples, trajectory.time[0], trajectory.time[-1]))
 
 
+def campaign_data(xyz: np.ndarray, gps: np.ndarray, ground: np.ndarray, building: np.ndarray,
+                  trajectory: Trajectory, limits: tuple[float, float, float], track: np.ndarray, origin: np.ndarray,
+                  params: FacadeParams, source: str | None = None) -> CampaignData:
+    """:class:`CampaignData` over some of a campaign's points (all of them, or one building's context) with the
+    campaign-wide ``limits``, ``track`` and index ``origin`` (:mod:`lidarmap.campaign_scan`)."""
+    nonground = np.flatnonzero(~ground)
+    sensors = np.full((len(xyz), 3), np.nan)
+    sensors[nonground] = trajectory.position_at(gps[nonground])  # InputError when the trajectory misses them
+    camp = CampaignData(xyz=xyz, sensors=sensors, ground=ground, building=building,
+                        nonground_index=_XYIndex(xyz[nonground, :2], params.index_bin, origin),
+                        nonground_ids=nonground, limits=limits, track=track, source=source)
+    ground_ids = np.flatnonzero(ground)
+    if len(ground_ids):
+        camp.ground_index, camp.ground_ids = _XYIndex(xyz[ground_ids, :2], params.index_bin, origin), ground_ids
+    return camp
+
+
 def prepare_campaign(points: PointCloud, trajectory: Trajectory, params: FacadeParams, seed: int = 0,
                      timings: dict | None = None) -> CampaignData:
-    """Ground/building masks, the sensor position of every non-ground point, spatial indices, scanner limits.
+    """Ground/building masks, the sensor position of every non-ground point, spatial indices, scanner limits, for
+    a whole campaign held in memory (the same rules as the streamed update, :mod:`lidarmap.campaign_scan`; ``seed``
+    is unused: the reach limits come from a stride sample).
 
     Raises :class:`~lidarmap.errors.InputError` for an empty cloud, missing ``gps_time`` or GPS times the
     trajectory does not cover (``Trajectory.position_at``).
     """
+    from lidarmap.campaign_scan import CampaignScan, StatsPass
+
     clock = time.perf_counter()
     tm = timings if timings is not None else {}
     check_points(points.xyz, points.source)
-    if "gps_time" not in points.attrs:
-        raise InputError("the points have no gps_time: façade occlusion needs each point's sensor position",
-                         points.source)
-    xyz = points.xyz
+    origin = points.xyz[:, :2].min(axis=0)
+    scan = CampaignScan(origin, params, points.source)
+    index = scan.add(points)
+    classes = scan.classes()
+    stats_pass = StatsPass(classes, scan, trajectory)
     classification = points.attrs.get("classification")
-    ground = ground_mask(xyz, classification, params)
-    building = building_mask(classification, ground, params) & ~ground
-    nonground = np.flatnonzero(~ground)
-    if len(nonground) == 0:
-        raise InputError("every point is ground: no façade can be extracted", points.source)
     gps = np.asarray(points.attrs["gps_time"], dtype=np.float64)
-    sensors = np.full((len(xyz), 3), np.nan)
-    sensors[nonground] = trajectory.position_at(gps[nonground])  # InputError when the trajectory misses them
-    rng = np.random.default_rng(seed)
-    sub = nonground if len(nonground) <= 200_000 else rng.choice(nonground, size=200_000, replace=False)
-    limits = reach_limits(xyz[sub], sensors[sub], params.reach_quantile)
-    t_lo, t_hi = float(gps[nonground].min()), float(gps[nonground].max())
-    camp = CampaignData(xyz=xyz, sensors=sensors, ground=ground, building=building,
-                        nonground_index=_XYIndex(xyz[nonground, :2], params.index_bin), nonground_ids=nonground,
-                        limits=limits, track=_campaign_track(trajectory, t_lo, t_hi, params.reach_step),
-                        source=points.source)
-    ground_ids = np.flatnonzero(ground)
-    if len(ground_ids):
-        camp.ground_index, camp.ground_ids = _XYIndex(xyz[ground_ids, :2], params.index_bin), ground_ids
+    stats_pass.add(points.xyz, gps, classification, index)
+    stats = stats_pass.finish(params.reach_quantile)
+    ground, building = classes.masks(points.xyz, classification)
+    camp = campaign_data(points.xyz, gps, ground, building, trajectory, stats.limits,
+                         campaign_track(trajectory, *stats.t_span, params.reach_step), origin, params, points.source)
     tm["prepare"] = tm.get("prepare", 0.0) + time.perf_counter() - clock
     return camp
 
@@ -431,24 +448,17 @@ def extract_buildings(points: PointCloud, trajectory: Trajectory, footprints: Fo
 
     ``points`` need ``gps_time`` (for the sensor positions of the occlusion ray tracing) and are in the same CRS as
     ``footprints``. Returns the buildings (footprint order) that received at least one façade; ``timings`` (a dict)
-    receives seconds per step.
+    receives seconds per step. Runs building by building exactly like ``lidarmap map update``
+    (:func:`lidarmap.map_update.fuse_campaign`): each building draws its random numbers from (seed, its id).
     """
-    tm = timings if timings is not None else {}
-    check_same_crs(points, footprints)
-    camp = prepare_campaign(points, trajectory, params, seed, tm)
-    clock = time.perf_counter()
-    joined = join_campaign(camp, footprints, params)
-    tm["join"] = time.perf_counter() - clock
+    from lidarmap.map_update import cloud_source, fuse_campaign
+    from lidarmap.model import BuildingMap
+    from lidarmap.refine import RefineParams
 
-    rng = np.random.default_rng(seed)
-    result: list[Building] = []
-    for b, ids in joined.items():
-        polygon = footprints.polygons[b]
-        facades = building_facades(camp, ids, polygon, params, campaign_id, seed + int(b), rng, tm)
-        if facades:
-            result.append(Building(building_id=footprints.ids[b], footprint=polygon,
-                                   attributes=dict(footprints.properties[b]), facades=facades))
-    return result
+    check_same_crs(points, footprints)
+    fused = fuse_campaign(BuildingMap(crs_wkt=""), cloud_source(points), trajectory, footprints, params,
+                          RefineParams(), campaign_id, seed, strict=True, timings=timings)
+    return list(fused.map.buildings.values())
 
 
 def check_same_crs(points: PointCloud, footprints: Footprints) -> None:
@@ -471,13 +481,8 @@ def join_campaign(camp: CampaignData, footprints: Footprints, params: FacadePara
     cand = np.flatnonzero(camp.building)
     bidx, _ = join_footprints(xyz[cand, :2], footprints, params.max_footprint_distance, params.join_quantum)
     if not np.any(bidx >= 0):
-        px0, py0 = xyz[:, :2].min(axis=0)
-        px1, py1 = xyz[:, :2].max(axis=0)
-        fx0, fy0, fx1, fy1 = footprints.bounds
-        raise InputError(
-            f"none of the {len(cand)} building points lies within {params.max_footprint_distance:g} m of a "
-            f"footprint (points bbox [{px0:.1f}, {py0:.1f}, {px1:.1f}, {py1:.1f}], footprints bbox "
-            f"[{fx0:.1f}, {fy0:.1f}, {fx1:.1f}, {fy1:.1f}]): wrong footprints file or CRS?", footprints.source)
+        lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+        raise no_join_error(len(cand), (lo[0], lo[1], hi[0], hi[1]), footprints, params)
     order = np.argsort(bidx, kind="stable")
     sorted_b = bidx[order]
     joined: dict[int, np.ndarray] = {}
@@ -485,6 +490,17 @@ def join_campaign(camp: CampaignData, footprints: Footprints, params: FacadePara
         lo, hi = np.searchsorted(sorted_b, [b, b + 1])
         joined[int(b)] = cand[order[lo:hi]]
     return joined
+
+
+def no_join_error(n_building: int, points_bounds: tuple[float, float, float, float], footprints: Footprints,
+                  params: FacadeParams) -> InputError:
+    """The error for a campaign none of whose building points lies near a footprint (naming the footprint file)."""
+    px0, py0, px1, py1 = points_bounds
+    fx0, fy0, fx1, fy1 = footprints.bounds
+    return InputError(
+        f"none of the {n_building} building points lies within {params.max_footprint_distance:g} m of a "
+        f"footprint (points bbox [{px0:.1f}, {py0:.1f}, {px1:.1f}, {py1:.1f}], footprints bbox "
+        f"[{fx0:.1f}, {fy0:.1f}, {fx1:.1f}, {fy1:.1f}]): wrong footprints file or CRS?", footprints.source)
 
 
 def detect_facade_groups(xyz: np.ndarray, params: FacadeParams, rng: np.random.Generator) -> list[PlaneGroup]:

@@ -14,7 +14,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import shapely
-from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -31,26 +30,79 @@ if TYPE_CHECKING:  # pragma: no cover
 # Ground and building points
 
 
+class LowestCells:
+    """The lowest point of every ``cell`` xy cell of a lattice anchored at ``origin``, gathered chunk by chunk.
+
+    The height rule of :func:`ground_mask` needs, for each point, the lowest point of the 3x3 cells around its own;
+    this table holds only the occupied cells (sorted keys), so a campaign streamed in chunks of any size, or any
+    part of it read back later, gets exactly the ground of the whole campaign as long as every point went through
+    :meth:`add` before :meth:`finish`.
+    """
+
+    def __init__(self, origin: np.ndarray, cell: float):
+        self.origin = np.asarray(origin, dtype=np.float64)[:2]
+        self.cell = float(cell)
+        self.keys = np.zeros(0, dtype=np.int64)
+        self.z = np.zeros(0)
+        self.finished = False
+
+    def cell_keys(self, xy: np.ndarray) -> np.ndarray:
+        # +1: the 3x3 neighbours of cells in row/column 0 keep non-negative keys
+        ij = np.floor((xy - self.origin) / self.cell).astype(np.int64) + 1
+        return (ij[:, 0] << 31) | ij[:, 1]
+
+    def add(self, xyz: np.ndarray) -> None:
+        """Fold more points into the table (any order, any chunking)."""
+        keys, z = _min_per_key(self.cell_keys(xyz[:, :2]), np.asarray(xyz[:, 2], dtype=np.float64))
+        self.keys, self.z = _min_per_key(np.concatenate([self.keys, keys]), np.concatenate([self.z, z]))
+
+    def finish(self) -> "LowestCells":
+        """Replace every cell's lowest z by the lowest over the 3x3 cells around it (missing cells: none)."""
+        low = self.z.copy()
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                want = self.keys + (di << 31) + dj
+                pos = np.minimum(np.searchsorted(self.keys, want), max(len(self.keys) - 1, 0))
+                hit = self.keys[pos] == want if len(self.keys) else np.zeros(0, dtype=bool)
+                low[hit] = np.minimum(low[hit], self.z[pos[hit]])
+        self.z, self.finished = low, True
+        return self
+
+    def ground(self, xyz: np.ndarray, height: float) -> np.ndarray:
+        """Points less than ``height`` above the lowest point of the 3x3 cells around them."""
+        if not self.finished:
+            raise RuntimeError("LowestCells.finish() first")
+        if not len(xyz):
+            return np.zeros(0, dtype=bool)
+        pos = np.searchsorted(self.keys, self.cell_keys(xyz[:, :2]))
+        return xyz[:, 2] - self.z[np.minimum(pos, len(self.keys) - 1)] < height
+
+
+def _min_per_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct keys (sorted) and the smallest value of each."""
+    if not len(keys):
+        return keys, values
+    order = np.argsort(keys, kind="stable")
+    keys, values = keys[order], values[order]
+    first = np.flatnonzero(np.concatenate([[True], keys[1:] != keys[:-1]]))
+    return keys[first], np.minimum.reduceat(values, first)
+
+
 def ground_mask(xyz: np.ndarray, classification: np.ndarray | None, params: "FacadeParams") -> np.ndarray:
     """True for ground points: class ``params.ground_class`` when the classification has it, else a height rule.
 
-    The height rule (no usable classification): the lowest point of every ``ground_cell`` xy cell, then the minimum
-    over the 3x3 neighbouring cells (so a cell holding only wall points still sees the street next to it); points
-    less than ``ground_height`` above that local lowest point are ground.
+    The height rule (no usable classification): the lowest point of every ``ground_cell`` xy cell (lattice anchored
+    at the points' minimum), then the minimum over the 3x3 neighbouring cells (so a cell holding only wall points
+    still sees the street next to it); points less than ``ground_height`` above that local lowest point are ground.
     """
     n = len(xyz)
     if n == 0:
         return np.zeros(0, dtype=bool)
     if classification is not None and np.any(classification == params.ground_class):
         return classification == params.ground_class
-    cell = params.ground_cell
-    ij = np.floor((xyz[:, :2] - xyz[:, :2].min(axis=0)) / cell).astype(np.int64)
-    shape = tuple(ij.max(axis=0) + 1)
-    flat = ij[:, 0] * shape[1] + ij[:, 1]
-    zmin = np.full(shape[0] * shape[1], np.inf)
-    np.minimum.at(zmin, flat, xyz[:, 2])
-    zmin = ndimage.minimum_filter(zmin.reshape(shape), size=3, mode="nearest").ravel()
-    return xyz[:, 2] - zmin[flat] < params.ground_height
+    cells = LowestCells(xyz[:, :2].min(axis=0), params.ground_cell)
+    cells.add(xyz)
+    return cells.finish().ground(xyz, params.ground_height)
 
 
 def building_mask(classification: np.ndarray | None, ground: np.ndarray, params: "FacadeParams") -> np.ndarray:
@@ -60,30 +112,35 @@ def building_mask(classification: np.ndarray | None, ground: np.ndarray, params:
     return ~ground
 
 
-def join_footprints(xy: np.ndarray, footprints: "Footprints", max_distance: float,
-                    quantum: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+def join_footprints(xy: np.ndarray, footprints: "Footprints | np.ndarray", max_distance: float,
+                    quantum: float = 0.02, origin: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Nearest footprint of every point within ``max_distance`` (§2.2 spatial join), vectorised.
 
-    Returns (building index per point, -1 beyond ``max_distance``; distance to the footprint polygon, 0 inside).
+    ``footprints``: a :class:`Footprints` or an array of polygons. Returns (footprint index per point, -1 beyond
+    ``max_distance``; distance to the footprint polygon, 0 inside). A point as near to several footprints (a party
+    wall of two terraced houses) goes to the first of them, so the join does not depend on the spatial index.
     Points are snapped to a ``quantum`` xy grid first (façade points share few xy positions), so 5 M points cost one
     ``np.unique`` and a GEOS nearest query on the distinct positions; the snapping moves a point by at most
-    ``quantum / sqrt(2)``.
+    ``quantum / sqrt(2)``, on a lattice anchored at ``origin`` (default: the points' minimum; a campaign joined
+    building by building passes its own origin so that a point snaps to the same spot in every building's join).
     """
     if len(xy) == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0)
-    lo = np.floor(xy.min(axis=0) / quantum) * quantum
+    polygons = getattr(footprints, "polygons", footprints)
+    lo = np.floor((xy.min(axis=0) if origin is None else np.asarray(origin)[:2]) / quantum) * quantum
     keys = np.round((xy - lo) / quantum).astype(np.int64)
     ncol = int(keys[:, 1].max()) + 1
     flat = keys[:, 0] * ncol + keys[:, 1]
     uniq, inverse = np.unique(flat, return_inverse=True)
     centres = np.column_stack([uniq // ncol, uniq % ncol]).astype(np.float64) * quantum + lo
-    tree = shapely.STRtree(footprints.polygons)
+    tree = shapely.STRtree(polygons)
     geoms = shapely.points(centres)
-    (qi, ti), dist = tree.query_nearest(geoms, max_distance=max_distance, return_distance=True, all_matches=False)
-    index = np.full(len(uniq), -1, dtype=np.int64)
+    (qi, ti), dist = tree.query_nearest(geoms, max_distance=max_distance, return_distance=True, all_matches=True)
+    index = np.full(len(uniq), len(polygons), dtype=np.int64)
+    np.minimum.at(index, qi, ti)  # ties: the lowest footprint index
     distance = np.full(len(uniq), np.inf)
-    index[qi] = ti
     distance[qi] = dist
+    index[index == len(polygons)] = -1
     return index[inverse], distance[inverse]
 
 

@@ -58,8 +58,7 @@ from scipy import ndimage
 from shapely.geometry import Polygon, box
 
 from lidarmap.errors import LidarmapError
-from lidarmap.facade import (CampaignData, FacadeParams, layer_fit, building_facades, check_same_crs,
-                             extract_buildings, join_campaign, observe_facade, prepare_campaign)
+from lidarmap.facade import CampaignData, FacadeParams, building_facades, check_same_crs, layer_fit, observe_facade
 from lidarmap.facade_layers import assign_layers, grid_shape, mask_to_polygons
 from lidarmap.facade_planes import fit_line_2d, footprint_edges
 from lidarmap.facade_windows import _box_sums, _integral
@@ -100,6 +99,11 @@ class RefineParams:
     Layers (eq. 4-7)
         main_layer_gate (0.3): the new component nearest the stored main layer (d = 0) within this distance is
             the main layer seen again; without one the façade is not refined by this campaign.
+        wall_retry_inits (5): when the campaign's GMM component matched to the stored main layer is not narrow
+            enough to be a surface (σ > FacadeParams.surface_max_sigma), or none matches, the GMM is fitted again
+            with this many starts: on the few thousand points of a side wall one random start merges the wall
+            into a broad clutter component for ~10-30 % of seeds (σ 10-15 cm), whose 3σ band then drags the
+            extent along the clutter; five starts found the wall for every seed tried.
         layer_gate (3.0): another new component matches a stored layer when their means (after removing the main
             layer's shift, i.e. the campaigns' misregistration) differ by at most layer_gate x sqrt(σ0² + σ1²) ...
         layer_gate_min (0.04): ... or this distance (the fused σ0 shrinks with every campaign; layers closer than
@@ -147,6 +151,7 @@ class RefineParams:
     normal_max_angle_deg: float = 5.0
     min_element_density: float = 20.0
     main_layer_gate: float = 0.3
+    wall_retry_inits: int = 5
     layer_gate: float = 3.0
     layer_gate_min: float = 0.04
     iou_threshold: float = 0.3
@@ -174,6 +179,8 @@ class RefineParams:
         for name in ("iou_threshold", "contain_fraction", "seen_fraction", "structure_vote"):
             if not 0.0 < getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in (0, 1]")
+        if self.wall_retry_inits < 1:
+            raise ValueError("wall_retry_inits must be >= 1")
         if min(self.line_offsets, self.extend_margin, self.extend_min, self.extend_min_area) < 0:
             raise ValueError("line_offsets, extend_margin, extend_min and extend_min_area must be >= 0")
 
@@ -193,6 +200,12 @@ def fuse_gaussians(mu0: float, sigma0: float, mu1: float, sigma1: float) -> tupl
     return mu, math.sqrt(max(v0 - k * v0, 0.0))
 
 
+def _main_match(main: Layer | None, new: list[Layer], params: RefineParams) -> int | None:
+    """The new component that is the stored main layer seen again: the heaviest within ``main_layer_gate``."""
+    near = [i for i, la in enumerate(new) if main is not None and abs(la.mu - main.mu) <= params.main_layer_gate]
+    return max(near, key=lambda i: (new[i].weight, -i)) if near else None
+
+
 def match_layers(stored: list[Layer], main_id: int | None, new: list[Layer],
                  params: RefineParams) -> tuple[dict[int, int], float]:
     """Match new layers (indices) to stored layer ids: {new index: stored layer id}, and the main layer's shift.
@@ -203,12 +216,9 @@ def match_layers(stored: list[Layer], main_id: int | None, new: list[Layer],
     layer was not seen again.
     """
     main = next((la for la in stored if la.layer_id == main_id), None)
-    if main is None or not new:
+    j_main = _main_match(main, new, params)
+    if j_main is None:
         return {}, math.nan
-    near = [i for i, la in enumerate(new) if abs(la.mu - main.mu) <= params.main_layer_gate]
-    if not near:
-        return {}, math.nan
-    j_main = max(near, key=lambda i: (new[i].weight, -i))
     shift = new[j_main].mu - main.mu
     pairs = []
     for i, la in enumerate(new):
@@ -801,6 +811,13 @@ def _main_inlier_normal(xyz: np.ndarray, depth: np.ndarray, layer: Layer, sigma_
     return normal2, int(inl.sum())
 
 
+def _wall_component(layers: list[Layer], stored: Facade, fparams: FacadeParams, params: RefineParams) -> bool:
+    """Whether the component of a campaign's layers matched to the stored main layer is narrow enough to be a
+    surface (σ <= ``surface_max_sigma``)."""
+    j = _main_match(stored.layer(stored.main_layer), layers, params)
+    return j is not None and layers[j].sigma <= fparams.surface_max_sigma
+
+
 def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, polygon, fparams: FacadeParams,
                   params: RefineParams, campaign_id: int, seed: int = 0, tm: dict | None = None) -> Facade | None:
     """The stored façade refined by one campaign's points ``member_ids`` (indices into ``camp``), or ``None`` when
@@ -818,6 +835,11 @@ def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, po
     if keep.sum() < fparams.min_facade_points:
         return None
     new_layers = layer_fit(std[keep], cell, fparams, rng, seed)  # the campaign's own Gaussians, stored depth axis
+    if not _wall_component(new_layers, stored, fparams, params):
+        # one random start can merge the wall into a broad clutter component (a few thousand points of a side
+        # wall): the same sample again, with more starts
+        retry = dataclasses.replace(fparams, gmm_n_init=max(fparams.gmm_n_init, params.wall_retry_inits))
+        new_layers = layer_fit(std[keep], cell, retry, np.random.default_rng(seed), seed)
     matches, _ = match_layers(stored.layers, stored.main_layer, new_layers, params)
     if not matches:
         return None
@@ -938,34 +960,16 @@ def refine_map(stored: BuildingMap, points: PointCloud, trajectory: Trajectory, 
 
     Buildings are matched to footprints by id; a building the map does not hold yet is extracted from the campaign
     (§2.2-2.4). Re-applying a campaign id the map already lists (or a façade already holds) changes nothing.
-    ``timings`` (a dict) receives seconds per step.
+    ``timings`` (a dict) receives seconds per step. Runs building by building exactly like ``lidarmap map update``
+    (:func:`lidarmap.map_update.fuse_campaign`, in this process, the first error raised).
     """
-    tm = timings if timings is not None else {}
-    new_map = copy.deepcopy(stored)
+    from lidarmap.map_update import cloud_source, fuse_campaign
+
     if _campaign_applied(stored, campaign_id):
-        return new_map
-    if not stored.buildings:
-        buildings = extract_buildings(points, trajectory, footprints, facade_params, campaign_id, seed, tm)
-        new_map.buildings = {b.building_id: b for b in buildings}
-        return new_map
+        return copy.deepcopy(stored)
     check_same_crs(points, footprints)
-    camp = prepare_campaign(points, trajectory, facade_params, seed, tm)
-    clock = time.perf_counter()
-    joined = join_campaign(camp, footprints, facade_params)
-    tm["join"] = time.perf_counter() - clock
-    rng = np.random.default_rng(seed)
-    for b, ids in joined.items():
-        bid = str(footprints.ids[b])  # the map's (and the store's) building ids are strings
-        if bid in new_map.buildings:
-            new_map.buildings[bid] = _refine_building(new_map.buildings[bid], camp, ids, facade_params, params,
-                                                      campaign_id, seed + int(b), rng, tm)
-            continue
-        polygon = footprints.polygons[b]
-        facades = building_facades(camp, ids, polygon, facade_params, campaign_id, seed + int(b), rng, tm)
-        if facades:
-            new_map.buildings[bid] = Building(building_id=bid, footprint=polygon,
-                                              attributes=dict(footprints.properties[b]), facades=facades)
-    return new_map
+    return fuse_campaign(stored, cloud_source(points), trajectory, footprints, facade_params, params, campaign_id,
+                         seed, strict=True, timings=timings).map
 
 
 # ----------------------------------------------------------------------------------------------------------------------

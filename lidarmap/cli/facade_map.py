@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Optional
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from lidarmap.cli.common import (ConfigOption, CrsOption, IdFieldOption, SeedOption, handle_errors, params_from,
@@ -112,19 +113,26 @@ def _refuse_applied(store: MapStore, fingerprint: str, inputs: CampaignInputs) -
                          f"(applied {applied.created[:19]}); nothing changed", store.path)
 
 
-def _map_crs(cloud: PointCloud, store: MapStore | None, points: Path) -> CRS:
+def update_params(config: Path | None, workers: int | None = None, scheduler: str | None = None) -> Any:
+    """UpdateParams (``[update]``) from the config file, ``--workers`` / ``--scheduler`` overriding it."""
+    from lidarmap.map_update import UpdateParams
+
+    return params_from(UpdateParams, config, workers=workers, scheduler=scheduler)
+
+
+def _map_crs(points_crs: CRS | None, store: MapStore | None, points: Path) -> CRS:
     """The map's CRS: the stored one (the points must match it) or, for a new map, the points' CRS."""
     from pyproj import CRS
 
     from lidarmap.io.crs import same_crs
 
-    if cloud.crs is None:
+    if points_crs is None:
         raise CRSError("the points have no CRS; give it with --crs (e.g. --crs EPSG:32632)", points)
     if store is None or not store.crs_wkt:
-        return cloud.crs
+        return points_crs
     stored = CRS.from_user_input(store.crs_wkt)
-    if not same_crs(stored, cloud.crs):
-        raise CRSError(f"the points are in {cloud.crs.name!r} but the map is in {stored.name!r}", points)
+    if not same_crs(stored, points_crs):
+        raise CRSError(f"the points are in {points_crs.name!r} but the map is in {stored.name!r}", points)
     return stored
 
 
@@ -146,61 +154,114 @@ def map_footprints(building_map: BuildingMap, source: Path) -> Footprints:
                       crs=horizontal_crs(CRS.from_user_input(building_map.crs_wkt)), source=str(source))
 
 
-def _campaign_footprints(inputs: CampaignInputs, cloud: PointCloud, stored: BuildingMap, map_path: Path) -> Footprints:
+def _campaign_footprints(inputs: CampaignInputs, crs: CRS, bounds: tuple[float, float, float, float],
+                         stored: BuildingMap, map_path: Path) -> Footprints:
     from lidarmap.io.footprints import check_overlap, read_footprints
 
     if inputs.footprints is not None:
-        footprints = read_footprints(inputs.footprints, id_field=inputs.id_field, crs=cloud.crs)
+        footprints = read_footprints(inputs.footprints, id_field=inputs.id_field, crs=crs)
     else:
         footprints = map_footprints(stored, map_path)
-    lo, hi = cloud.xyz.min(axis=0), cloud.xyz.max(axis=0)
-    check_overlap(footprints, (lo[0], lo[1], hi[0], hi[1]), inputs.points.name)
+    check_overlap(footprints, bounds, inputs.points.name)
     return footprints
 
 
-def _new_map(stored: BuildingMap, cloud: PointCloud, footprints: Footprints, inputs: CampaignInputs,
-             params: tuple[Any, Any], campaign_id: int, seed: int) -> BuildingMap:
-    """The refinement stage: a new map (``stored`` untouched) through the contract of ``lidarmap.refine``."""
+@dataclasses.dataclass
+class _Points:
+    """The campaign's points as far as the update needs them before fusing: CRS, count, xy bounds, and either the
+    whole cloud (aerial) or a stream (mobile)."""
+
+    crs: CRS | None
+    n_points: int
+    bounds: tuple[float, float, float, float]
+    cloud: PointCloud | None = None
+    stream: Any = None  # lidarmap.map_update.CampaignSource
+
+
+def _read_points(inputs: CampaignInputs, update: Any) -> _Points:
+    """Aerial scans are read whole; of a mobile campaign only the header here (the update streams it)."""
+    from lidarmap.io.las import read_las
+    from lidarmap.map_update import las_source
+
+    if inputs.kind == "mobile":
+        stream = las_source(inputs.points, inputs.crs, update.chunk_points)
+        return _Points(stream.crs, stream.n_points, (*stream.lo, *stream.hi), stream=stream)
+    cloud = read_las(inputs.points, crs=inputs.crs)
+    if len(cloud) == 0:
+        raise InputError("the point cloud is empty", inputs.points)
+    lo, hi = cloud.xyz.min(axis=0), cloud.xyz.max(axis=0)
+    return _Points(cloud.crs, len(cloud), (lo[0], lo[1], hi[0], hi[1]), cloud=cloud)
+
+
+@dataclasses.dataclass
+class _Fused:
+    """The refinement stage's answer: the new map and the buildings whose task failed ({id: reason})."""
+
+    map: BuildingMap
+    failed: dict[str, str]
+
+
+def _new_map(stored: BuildingMap, points: _Points, footprints: Footprints, inputs: CampaignInputs,
+             params: tuple[Any, Any], update: Any, campaign_id: int, seed: int, map_path: Path,
+             progress: Callable[[int, int], None]) -> _Fused:
+    """The refinement stage: a new map (``stored`` untouched). Aerial: ``refine.add_aerial`` in memory. Mobile:
+    :func:`lidarmap.map_update.fuse_campaign` streaming the points through a spool in a temporary folder beside
+    the map (removed at the end, also on error), buildings on the workers ``update`` names."""
+    import tempfile
+
     from lidarmap import refine
     from lidarmap.io.trajectory import read_trajectory
+    from lidarmap.map_update import fuse_campaign
 
     facade_params, refine_params = params
     if inputs.kind == "aerial":
-        return refine.add_aerial(stored, cloud, footprints, refine_params, campaign_id, seed)
+        return _Fused(refine.add_aerial(stored, points.cloud, footprints, refine_params, campaign_id, seed), {})
     trajectory = read_trajectory(inputs.trajectory)
-    return refine.refine_map(stored, cloud, trajectory, footprints, facade_params, refine_params, campaign_id, seed)
+    with tempfile.TemporaryDirectory(dir=map_path.resolve().parent, prefix=f".{map_path.name}.spool-") as spool:
+        fused = fuse_campaign(stored, points.stream, trajectory, footprints, facade_params, refine_params,
+                              campaign_id, seed, update=update, spool_dir=Path(spool) / "points", progress=progress)
+    return _Fused(fused.map, fused.failed)
 
 
 @dataclasses.dataclass
 class UpdateResult:
-    """What ``map update`` committed."""
+    """What ``map update`` committed; ``failed``: buildings whose task failed ({id: reason}), left as stored."""
 
     campaign: Campaign
     changes: dict[str, dict[str, int]]
     counts: dict[str, int]
     seconds: float
+    failed: dict[str, str] = dataclasses.field(default_factory=dict)
 
 
 def _campaign_record(inputs: CampaignInputs, campaign_id: int, fingerprint: str, n_points: int,
-                     counts: dict[str, int], seconds: float, seed: int) -> Campaign:
-    """The campaign row: what was applied, its fingerprint, and the map's counts after it (``map history``)."""
+                     counts: dict[str, int], seconds: float, seed: int, failed: dict[str, str]) -> Campaign:
+    """The campaign row: what was applied, its fingerprint, the map's counts after it (``map history``) and the
+    buildings it could not update (``failed``: {id: reason})."""
     from lidarmap.model import Campaign
 
     files = {name: str(path.resolve()) for name, path in (("points", inputs.points), ("trajectory", inputs.trajectory),
                                                            ("footprints", inputs.footprints)) if path is not None}
     return Campaign(campaign_id=campaign_id, kind=inputs.kind, source=inputs.source, fingerprint=fingerprint,
                     n_points=n_points, created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-                    summary={**counts, "seconds": round(seconds, 3), "seed": seed, "files": files})
+                    summary={**counts, "seconds": round(seconds, 3), "seed": seed, "files": files,
+                             "failed": dict(failed)})
 
 
 def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, Any], seed: int,
-                   step: Callable[[str], None] = lambda name: None) -> UpdateResult:
-    """Fuse one campaign into the map (created when missing) in one transaction, under the writer lock."""
+                   step: Callable[[str], None] = lambda name: None, update: Any = None,
+                   progress: Callable[[int, int], None] = lambda done, total: None) -> UpdateResult:
+    """Fuse one campaign into the map (created when missing) in one transaction, under the writer lock.
+
+    ``update``: :class:`lidarmap.map_update.UpdateParams` (workers, scheduler, chunking of a mobile campaign;
+    default: this process). ``progress(done, total)`` after every building of a mobile campaign.
+    """
     from lidarmap.export.summary import count_map
-    from lidarmap.io.las import read_las
+    from lidarmap.map_update import UpdateParams
     from lidarmap.model import BuildingMap
     from lidarmap.store import MapStore, campaign_fingerprint, writer_lock
 
+    update = update or UpdateParams()
     started = time.perf_counter()
     with writer_lock(map_path):
         store = MapStore.open(map_path) if map_path.exists() else None
@@ -210,19 +271,19 @@ def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, An
             if store is not None:
                 _refuse_applied(store, fingerprint, inputs)
             step("reading points")
-            cloud = read_las(inputs.points, crs=inputs.crs)
-            if len(cloud) == 0:
-                raise InputError("the point cloud is empty", inputs.points)
-            crs = _map_crs(cloud, store, inputs.points)
+            points = _read_points(inputs, update)
+            crs = _map_crs(points.crs, store, inputs.points)
             stored = store.load() if store is not None else BuildingMap(crs_wkt=crs.to_wkt())
             step("reading footprints")
-            footprints = _campaign_footprints(inputs, cloud, stored, map_path)
+            footprints = _campaign_footprints(inputs, points.crs, points.bounds, stored, map_path)
             campaign_id = store.next_campaign_id() if store is not None else 1
             step("refining the map")
-            new_map = _new_map(stored, cloud, footprints, inputs, params, campaign_id, seed)
+            fused = _new_map(stored, points, footprints, inputs, params, update, campaign_id, seed, map_path,
+                             progress)
+            new_map = fused.map
             counts = count_map(new_map)
-            campaign = _campaign_record(inputs, campaign_id, fingerprint, len(cloud), counts,
-                                        time.perf_counter() - started, seed)
+            campaign = _campaign_record(inputs, campaign_id, fingerprint, points.n_points, counts,
+                                        time.perf_counter() - started, seed, fused.failed)
             new_map.campaigns = [*stored.campaigns, campaign]
             step("committing")
             if store is None:
@@ -231,7 +292,7 @@ def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, An
         finally:
             if store is not None:
                 store.close()
-    return UpdateResult(campaign, changes, counts, time.perf_counter() - started)
+    return UpdateResult(campaign, changes, counts, time.perf_counter() - started, fused.failed)
 
 
 _UPDATE_STEPS = ("fingerprint", "reading points", "reading footprints", "refining the map", "committing")
@@ -251,19 +312,27 @@ def update_command(
                                               dir_okay=False),
     id_field: Optional[str] = IdFieldOption,
     crs: Optional[str] = CrsOption,
+    workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes for the buildings of a mobile "
+                                          "campaign (dask LocalCluster; default 1: this process)."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address for multi-machine "
+                                            "updates, e.g. tcp://10.0.0.5:8786."),
     seed: Optional[int] = SeedOption,
     config: Optional[Path] = ConfigOption,
 ) -> None:
     """Fuse one campaign into the map (created if missing): façades, layers, windows, doors, occlusions or roofs."""
     inputs = campaign_inputs(points, trajectory, aerial, footprints, id_field, crs)
     params = stage_params(config)
+    update = update_params(config, workers, scheduler)
     with progress(transient=True) as bar:
         task = bar.add_task("map update", total=len(_UPDATE_STEPS))
 
         def step(name: str) -> None:
             bar.update(task, description=name, completed=_UPDATE_STEPS.index(name))
 
-        result = apply_campaign(map_path, inputs, params, 0 if seed is None else seed, step)
+        def buildings(done: int, total: int) -> None:
+            bar.update(task, description=f"refining the map ({done}/{total} buildings)")
+
+        result = apply_campaign(map_path, inputs, params, 0 if seed is None else seed, step, update, buildings)
     _print_update(map_path, result)
 
 
@@ -284,11 +353,15 @@ def _print_update(map_path: Path, result: UpdateResult) -> None:
               "elements": sum(result.counts[k] for k in ("windows", "doors", "structures", "unknown"))}
     for entity in ENTITIES:
         table.add_row(entity, str(in_map.get(entity, "–")), *_change_text(result.changes.get(entity, {})))
-    table_console().print(table)
+    out = table_console()
+    out.print(table)
+    for bid, reason in result.failed.items():
+        out.print(f"[yellow]failed[/] {escape(bid)}: {escape(reason)} (kept as stored)", highlight=False)
     k = result.counts
-    table_console().print(f"{k['buildings']} buildings, {k['facades']} façades, {k['windows']} windows, {k['doors']} doors, "
-                  f"{k['structures']} structures, {k['unknown']} unknown regions, {k['roofs']} roof planes; "
-                  f"done in {result.seconds:.1f} s")
+    failed = f", {len(result.failed)} building(s) failed" if result.failed else ""
+    out.print(f"{k['buildings']} buildings, {k['facades']} façades, {k['windows']} windows, {k['doors']} doors, "
+              f"{k['structures']} structures, {k['unknown']} unknown regions, {k['roofs']} roof planes{failed}; "
+              f"done in {result.seconds:.1f} s", highlight=False)
 
 
 # ----------------------------------------------------------------------------------------------------------------------

@@ -148,6 +148,14 @@ def read_header(path: str | Path) -> laspy.LasHeader:
         return reader.header
 
 
+def read_header_crs(path: str | Path, crs: str | CRS | None = None) -> tuple[laspy.LasHeader, CRS | None]:
+    """The validated header of a LAS/LAZ file and the CRS its points will have (:func:`resolve_crs`), without
+    reading any point: what a streaming reader needs to know first."""
+    path = Path(path)
+    with _open(path) as reader:
+        return reader.header, resolve_crs(_file_crs(reader.header, path), crs, path)
+
+
 def read_las(path: str | Path, crs: str | CRS | None = None) -> PointCloud:
     """Read a whole LAS/LAZ file. ``crs`` sets the CRS when the file has none (a conflicting one is an error)."""
     return PointCloud.concatenate(list(iter_las(path, crs=crs))) if _count(path) else _empty(path, crs)

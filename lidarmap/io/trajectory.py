@@ -41,12 +41,22 @@ class Trajectory:
         would silently put the sensor in the wrong place.
         """
         t = np.asarray(t, dtype=np.float64)
-        if t.size and (t.min() < self.time[0] - tolerance or t.max() > self.time[-1] + tolerance):
-            outside = int(np.count_nonzero((t < self.time[0] - tolerance) | (t > self.time[-1] + tolerance)))
-            raise InputError(
-                f"{outside} point time(s) in [{t.min():.3f}, {t.max():.3f}] lie outside the trajectory's "
-                f"[{self.time[0]:.3f}, {self.time[-1]:.3f}]", self.source)
+        if t.size:
+            self.check_covers(float(t.min()), float(t.max()), self.count_outside(t, tolerance))
         return np.column_stack([np.interp(t, self.time, self.xyz[:, k]) for k in range(3)])
+
+    def count_outside(self, t: np.ndarray, tolerance: float = 0.05) -> int:
+        """How many of the times ``t`` lie more than ``tolerance`` seconds outside the trajectory."""
+        t = np.asarray(t, dtype=np.float64)
+        return int(np.count_nonzero((t < self.time[0] - tolerance) | (t > self.time[-1] + tolerance)))
+
+    def check_covers(self, t_min: float, t_max: float, outside: int) -> None:
+        """Refuse point times in [t_min, t_max] of which ``outside`` lie outside the trajectory (InputError naming
+        the trajectory file); a streamed campaign counts them chunk by chunk and calls this once."""
+        if outside:
+            raise InputError(
+                f"{outside} point time(s) in [{t_min:.3f}, {t_max:.3f}] lie outside the trajectory's "
+                f"[{self.time[0]:.3f}, {self.time[-1]:.3f}]", self.source)
 
 
 def read_trajectory(path: str | Path) -> Trajectory:
