@@ -167,8 +167,9 @@ def throughput(tmp: Path, copies: int) -> tuple[int, list[str]]:
     (base, base_out), rows = next(iter(runs.values())), []
     for (label, (m, out)), workers in zip(runs.items(), (1, 2, 3)):
         speedup = base["seconds"] / m["seconds"]
+        worker = gb(m["worker_rss"]) if m["worker_rss"] else "–"
         rows.append(f"| {label} | {m['seconds']:.1f} | {n / m['seconds']:,.0f} | {speedup:.2f}x | "
-                    f"{speedup / workers:.0%} | {gb(m['main_rss'])} | {gb(m['worker_rss'])} | "
+                    f"{speedup / workers:.0%} | {gb(m['main_rss'])} | {worker} | "
                     f"{'yes' if same_outputs(base_out, out) else 'NO'} |")
     for _, out in runs.values():
         shutil.rmtree(out, ignore_errors=True)
