@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -46,3 +49,22 @@ def sample_c() -> Path:
 @pytest.fixture
 def stbarth_laz() -> Path:
     return shared_file("ign_stbarth/St_Barth_RGAF09_UTM20N_IGN_1988_SB_subset_100m.laz")
+
+
+def run_cli_in_process(*args: object) -> tuple[int, str, str]:
+    """Run ``lidarmap ARGS`` in this process (faster than a subprocess): (exit code, stdout, stderr)."""
+    from lidarmap.cli.main import main
+
+    out, err = io.StringIO(), io.StringIO()
+    argv = sys.argv
+    sys.argv = ["lidarmap", *map(str, args)]
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                main()
+                code = 0
+            except SystemExit as exc:
+                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    finally:
+        sys.argv = argv
+    return code, out.getvalue(), err.getvalue()

@@ -8,8 +8,6 @@ the concurrent writer is a second process.
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import shutil
 import subprocess
@@ -18,31 +16,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_cli_in_process as run
 from PIL import Image
 
-from lidarmap.cli.main import main
 from lidarmap.export.render import facade_image_size
 from lidarmap.export.summary import count_map
 from lidarmap.export.validate import validate_cityjson
 from lidarmap.io.footprints import read_footprints
 from lidarmap.store import MapStore, campaign_fingerprint
-
-
-def run(*args: object) -> tuple[int, str, str]:
-    """Run ``lidarmap ARGS`` in this process: (exit code, stdout, stderr)."""
-    out, err = io.StringIO(), io.StringIO()
-    argv = sys.argv
-    sys.argv = ["lidarmap", *map(str, args)]
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                main()
-                code = 0
-            except SystemExit as exc:
-                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-    finally:
-        sys.argv = argv
-    return code, out.getvalue(), err.getvalue()
 
 
 def one_line_error(code: int, err: str, *needles: str) -> None:

@@ -8,35 +8,15 @@ export, byte for byte. Commands run in-process through the console entry point, 
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import pytest
+from conftest import run_cli_in_process as run
 
-from lidarmap.cli.main import main
 from lidarmap.store import MapStore
-
-
-def run(*args: object) -> tuple[int, str, str]:
-    """Run ``lidarmap ARGS`` in this process: (exit code, stdout, stderr)."""
-    out, err = io.StringIO(), io.StringIO()
-    argv = sys.argv
-    sys.argv = ["lidarmap", *map(str, args)]
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                main()
-                code = 0
-            except SystemExit as exc:
-                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-    finally:
-        sys.argv = argv
-    return code, out.getvalue(), err.getvalue()
 
 
 def campaign_args(sim, i: int) -> list[object]:
