@@ -384,7 +384,9 @@ def _json_default(value: Any) -> Any:
 
 @dataclasses.dataclass
 class RunResult:
-    """What a run did: per building its building.json record (processed now or earlier), failures with reasons."""
+    """What a run did: per building its building.json record (processed now or earlier), failures with reasons.
+    ``prep`` describes the buildings (entries: ids, footprints, heights, bounds); its spool is gone once the run
+    returns, so its points cannot be loaded any more (use :func:`lidarmap.prep.prep_tiles` for that)."""
 
     out_dir: Path
     records: list[dict[str, Any]]
