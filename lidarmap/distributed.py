@@ -34,6 +34,8 @@ __all__ = ["TaskFailure", "run_task", "map_tasks", "cluster_client", "check_clus
 
 #: Seconds to wait for a remote scheduler before giving up with a one-line error.
 CONNECT_TIMEOUT_S = 20
+#: Seconds to wait for a reachable scheduler to have at least one worker (workers may still be starting).
+WORKERS_TIMEOUT_S = 120
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,6 +77,11 @@ def cluster_client(workers: int, scheduler: str) -> Iterator[Any]:
             raise ConfigError(f"cannot reach the dask scheduler at {scheduler} ({' '.join(str(exc).split())[:120]})"
                               ) from None
         with client:
+            try:  # a scheduler without workers would otherwise accept the tasks and wait forever
+                client.wait_for_workers(1, timeout=WORKERS_TIMEOUT_S)
+            except (OSError, TimeoutError):
+                raise ConfigError(f"the dask scheduler at {scheduler} has no workers (waited {WORKERS_TIMEOUT_S} s); "
+                                  f"start some with: dask worker {scheduler}") from None
             yield client
         return
     # one BLAS/torch thread per worker process: workers x threads must not exceed the cores

@@ -178,6 +178,20 @@ def test_a_remote_scheduler_with_a_killed_worker_writes_the_serial_results(city:
     _same_buildings(serial_run, tmp_path / "remote")
 
 
+def test_a_scheduler_without_workers_is_a_one_line_error_not_a_hang(city: Path, tmp_path: Path, monkeypatch) -> None:
+    import lidarmap.distributed as distributed
+    from conftest import run_cli_in_process
+
+    monkeypatch.setattr(distributed, "WORKERS_TIMEOUT_S", 1)
+    with LocalCluster(n_workers=0, processes=True, dashboard_address=None, host="127.0.0.1") as empty:
+        code, _, err = run_cli_in_process("run", city / "als.laz", "-f", city / "footprints.geojson",
+                                          "-o", tmp_path / "out", "--scheduler", empty.scheduler_address)
+    assert code != 0 and "Traceback" not in err
+    assert f"the dask scheduler at {empty.scheduler_address} has no workers (waited 1 s)" in err
+    assert len(err.strip().splitlines()) == 1
+    assert not list((tmp_path / "out").glob("buildings/*/building.json"))  # nothing half-written
+
+
 def test_a_failing_building_is_reported_and_the_others_are_written(city: Path, tmp_path: Path, monkeypatch) -> None:
     import lidarmap.pipeline as pipeline
 
