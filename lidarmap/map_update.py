@@ -11,10 +11,11 @@
    counts, and a stride sample for the scanner's reach limits (:class:`~lidarmap.campaign_scan.StatsPass`).
 3. **Per building** (every footprint with spooled points near it): its *context* is the points of the box around
    its footprint and stored façades grown by everything façade work may look at (:func:`context_box`). With the
-   footprints that could be nearer to some of its points, the campaign's ground rule, reach limits and the reach
-   track inside the box it makes a picklable :class:`BuildingJob`; :func:`building_task` turns the job into the
-   new :class:`~lidarmap.model.Building`: façade extraction for a building the map does not hold, refinement
-   (:func:`lidarmap.refine._refine_building`) for one it holds.
+   footprints that could be nearer to some of its points and its reach track box it makes a :class:`BuildingJob`.
+   Neighbouring buildings (footprint centres in one ``group_size`` cell) share one picklable :class:`GroupJob`: the
+   union of their contexts, the reach limits and track. :func:`group_task` prepares the shared context once, then
+   :func:`building_task` turns each member into the new :class:`~lidarmap.model.Building`: façade extraction for a
+   building the map does not hold, refinement (:func:`lidarmap.refine._refine_building`) for one it holds.
 4. Jobs run through :func:`lidarmap.distributed.map_tasks` (this process, a LocalCluster or a remote scheduler);
    this process collects the buildings, and the caller commits them (one transaction).
 
@@ -23,11 +24,12 @@ job of the campaign, the footprints and the stored building only: every lattice 
 snapping) is anchored at the campaign's origin; the context's points are put back in file order; a point joins its
 nearest footprint among all footprints (ties: the first in the file); every building draws its random numbers from
 (seed, building id) (:func:`building_rng`); the reach limits come from a stride sample. A context holds every point
-any of the building's queries can return, so it answers them exactly as the whole campaign would.
+any of the building's queries can return, so it answers them exactly as the whole campaign would — and so does a
+group's larger context: the grouping does not change the map.
 
 **Memory.** Pass 1 holds a chunk and the spool's buffer (``chunk_points`` rows); the height rule's table one number
-per occupied ``ground_cell`` cell (only for campaigns without a ground class); each task one context, with at most
-``max_in_flight`` (2 x workers) jobs built and not yet collected. Memory follows the largest building's
+per occupied ``ground_cell`` cell (only for campaigns without a ground class); each task one group's context, with
+at most ``max_in_flight`` (2 x workers) jobs built and not yet collected. Memory follows the largest group's
 surroundings, not the campaign's size.
 """
 
@@ -47,7 +49,7 @@ import shapely
 from shapely.geometry import box as shapely_box
 
 from lidarmap.campaign_scan import CampaignScan, CampaignStats, PointClasses, StatsPass
-from lidarmap.distributed import TaskFailure, check_cluster_params, map_tasks
+from lidarmap.distributed import TaskFailure, check_cluster_params, map_tasks, run_task
 from lidarmap.errors import ConfigError, InputError
 from lidarmap.facade import (CampaignData, FacadeParams, building_facades, campaign_data, campaign_track,
                              no_join_error)
@@ -59,9 +61,9 @@ from lidarmap.model import Building, BuildingMap
 from lidarmap.refine import RefineParams, _refine_building
 from lidarmap.spool import ColumnSpool
 
-__all__ = ["UpdateParams", "CampaignSource", "cloud_source", "las_source", "CellGrid", "BuildingJob",
-           "BuildingOutcome", "FusedCampaign", "fuse_campaign", "building_task", "building_rng", "context_box",
-           "ContextBoxes"]
+__all__ = ["UpdateParams", "CampaignSource", "cloud_source", "las_source", "CellGrid", "BuildingJob", "GroupJob",
+           "BuildingOutcome", "GroupOutcome", "FusedCampaign", "fuse_campaign", "group_task", "building_task",
+           "building_groups", "building_rng", "context_box", "ContextBoxes"]
 
 #: Rows per batch of pass 2 (memory of that pass: ~50 bytes per row).
 STATS_BATCH_ROWS = 2_000_000
@@ -81,6 +83,10 @@ class UpdateParams:
             writing them to disk (pass 1 holds about 150 bytes per point of this).
         cell (25.0): xy size (m) of the spool's cells: a building's context is read as the cells its box overlaps,
             then cut to the box.
+        group_size (60.0): buildings whose footprint centre falls in the same ``group_size`` x ``group_size`` m
+            cell run as one task sharing one context (the union of their boxes): neighbours' contexts overlap
+            almost entirely (each reaches the scanner's range), so a group reads and indexes its points once and
+            ships them once. 0 = one building per task. Memory per task: one group's context.
     """
 
     section = "update"
@@ -89,6 +95,7 @@ class UpdateParams:
     scheduler: str = ""
     chunk_points: int = 2_000_000
     cell: float = 25.0
+    group_size: float = 60.0
 
     def __post_init__(self) -> None:
         try:
@@ -99,6 +106,8 @@ class UpdateParams:
             raise ValueError("chunk_points must be at least 1")
         if not self.cell > 0:
             raise ValueError("cell must be > 0")
+        if not (math.isfinite(self.group_size) and self.group_size >= 0):
+            raise ValueError("group_size must be >= 0")
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -288,7 +297,7 @@ def _join_box(footprint: Any, params: FacadeParams) -> tuple[float, float, float
 
 @dataclasses.dataclass
 class BuildingJob:
-    """Everything one building's update needs (picklable; travels to a worker)."""
+    """One building of a :class:`GroupJob`: what its update needs beyond the group's points (picklable)."""
 
     building_id: str
     footprint: Any  # shapely polygon from the footprint file
@@ -296,12 +305,21 @@ class BuildingJob:
     stored: Building | None
     neighbours: np.ndarray  # footprints that may be nearer to some of its points, in file order (itself included)
     own: int  # its position among them
-    points: dict[str, np.ndarray]  # the context: xyz, gps_time, index, ground, building
-    limits: tuple[float, float, float]
-    track: np.ndarray  # the reach track positions that can see its façades
-    origin: np.ndarray
+    track_box: tuple[float, float, float, float]  # where the reach track positions that can see its façades lie
+    origin: np.ndarray  # the campaign's lattices' anchor
     campaign_id: int
     seed: int
+
+
+@dataclasses.dataclass
+class GroupJob:
+    """One task: neighbouring buildings and the context they share (picklable; travels to a worker)."""
+
+    members: list[BuildingJob]
+    points: dict[str, np.ndarray]  # the union of the members' contexts: xyz, gps_time, index, ground, building
+    limits: tuple[float, float, float]
+    track: np.ndarray  # the reach track positions that can see some member's façades
+    origin: np.ndarray
 
 
 @dataclasses.dataclass
@@ -310,6 +328,14 @@ class BuildingOutcome:
 
     building: Building | None
     n_joined: int
+    timings: dict
+
+
+@dataclasses.dataclass
+class GroupOutcome:
+    """Each member's outcome (or :class:`TaskFailure`), in member order, and the group's own timings."""
+
+    outcomes: list[BuildingOutcome | TaskFailure]
     timings: dict
 
 
@@ -322,16 +348,30 @@ def _joined_ids(camp: CampaignData, job: BuildingJob, params: FacadeParams) -> n
     return cand[nearest == job.own]
 
 
-def building_task(job: BuildingJob, trajectory: Trajectory, fparams: FacadeParams,
-                  rparams: RefineParams) -> BuildingOutcome:
-    """One building after the campaign: new façades (a building the map does not hold) or its refinement."""
-    tm: dict = {}
+def group_task(job: GroupJob, trajectory: Trajectory, fparams: FacadeParams, rparams: RefineParams,
+               strict: bool = False) -> GroupOutcome:
+    """The group's context prepared once (file order, sensor positions, indices), then :func:`building_task` for
+    each member; a member that fails becomes a :class:`TaskFailure` (``strict``: the error is raised)."""
     clock = time.perf_counter()
     order = np.argsort(job.points["index"], kind="stable")  # file order, as the whole campaign would have them
     points = {name: values[order] for name, values in job.points.items()}
     camp = campaign_data(points["xyz"], points["gps_time"], points["ground"], points["building"], trajectory,
                          job.limits, job.track, job.origin, fparams)
-    tm["prepare"] = time.perf_counter() - clock
+    timings = {"prepare": time.perf_counter() - clock}
+    outcomes: list[BuildingOutcome | TaskFailure] = []
+    for member in job.members:
+        # a context holding more points answers every query as the member's own would (docs/map.md); the track
+        # is cut to the member's own box all the same, as a one-building task has it
+        member_camp = dataclasses.replace(camp, track=job.track[_inside(job.track, member.track_box)])
+        args = (member, member_camp, fparams, rparams)
+        outcomes.append(building_task(*args) if strict else run_task(building_task, *args))
+    return GroupOutcome(outcomes, timings)
+
+
+def building_task(job: BuildingJob, camp: CampaignData, fparams: FacadeParams,
+                  rparams: RefineParams) -> BuildingOutcome:
+    """One building after the campaign: new façades (a building the map does not hold) or its refinement."""
+    tm: dict = {}
     clock = time.perf_counter()
     ids = _joined_ids(camp, job, fparams)
     tm["join"] = time.perf_counter() - clock
@@ -385,8 +425,10 @@ def _context_points(campaign: _Campaign, boxes: ContextBoxes) -> dict[str, np.nd
             "building": building[take]}
 
 
-def _job(b: int, stored: BuildingMap, footprints: Footprints, tree: shapely.STRtree, campaign: _Campaign,
-         fparams: FacadeParams, rparams: RefineParams, campaign_id: int, seed: int) -> BuildingJob:
+def _building_job(b: int, stored: BuildingMap, footprints: Footprints, tree: shapely.STRtree, campaign: _Campaign,
+                  fparams: FacadeParams, rparams: RefineParams, campaign_id: int,
+                  seed: int) -> tuple[BuildingJob, ContextBoxes]:
+    """Footprint ``b``'s job and the boxes of its context."""
     bid = str(footprints.ids[b])
     polygon = footprints.polygons[b]
     building = stored.buildings.get(bid)
@@ -395,23 +437,51 @@ def _job(b: int, stored: BuildingMap, footprints: Footprints, tree: shapely.STRt
     reach = fparams.max_footprint_distance + fparams.join_quantum
     neighbours = np.sort(tree.query(shapely_box(*_grow(_join_box(polygon, fparams), reach))))
     boxes = context_box(polygon, building, campaign.stats.limits, fparams, rparams)
-    track = campaign.track[_inside(campaign.track, boxes.track)]  # the others cannot reach its façades
-    return BuildingJob(building_id=bid, footprint=polygon, properties=dict(footprints.properties[b]),
-                       stored=building, neighbours=footprints.polygons[neighbours],
-                       own=int(np.searchsorted(neighbours, b)), points=_context_points(campaign, boxes),
-                       limits=campaign.stats.limits, track=track, origin=campaign.grid.origin,
-                       campaign_id=campaign_id, seed=seed)
+    job = BuildingJob(building_id=bid, footprint=polygon, properties=dict(footprints.properties[b]),
+                      stored=building, neighbours=footprints.polygons[neighbours],
+                      own=int(np.searchsorted(neighbours, b)), track_box=boxes.track, origin=campaign.grid.origin,
+                      campaign_id=campaign_id,
+                      seed=seed)
+    return job, boxes
 
 
-def _run_jobs(jobs: Iterable[BuildingJob], shared: tuple, update: UpdateParams,
-              strict: bool) -> Iterator[tuple[int, Any]]:
-    """(number, outcome or TaskFailure) per job; ``strict`` runs them here and lets errors through (in-memory
+def _union(boxes: Iterable[tuple[float, float, float, float]]) -> tuple[float, float, float, float]:
+    x0, y0, x1, y1 = np.array(list(boxes)).T
+    return float(x0.min()), float(y0.min()), float(x1.max()), float(y1.max())
+
+
+def _group_job(group: list[int], stored: BuildingMap, footprints: Footprints, tree: shapely.STRtree,
+               campaign: _Campaign, fparams: FacadeParams, rparams: RefineParams, campaign_id: int,
+               seed: int) -> GroupJob:
+    """The job of neighbouring footprints: their context is read once, as the union of their boxes."""
+    members, boxes = zip(*(_building_job(b, stored, footprints, tree, campaign, fparams, rparams, campaign_id, seed)
+                           for b in group))
+    union = ContextBoxes(*(_union(getattr(box, name) for box in boxes) for name in
+                           ("facades", "points", "ground", "track")))
+    return GroupJob(members=list(members), points=_context_points(campaign, union), limits=campaign.stats.limits,
+                    track=campaign.track[_inside(campaign.track, union.track)], origin=campaign.grid.origin)
+
+
+def building_groups(footprints: Footprints, todo: list[int], size: float) -> list[list[int]]:
+    """``todo`` (footprint indices) grouped by the ``size`` x ``size`` m cell holding their footprint's centre
+    (0: one building per group); groups in the order of their first footprint."""
+    groups: dict[tuple[int, int] | int, list[int]] = {}
+    for b in todo:
+        x0, y0, x1, y1 = footprints.polygons[b].bounds
+        key = b if size <= 0 else (math.floor((x0 + x1) / 2 / size), math.floor((y0 + y1) / 2 / size))
+        groups.setdefault(key, []).append(b)
+    return list(groups.values())
+
+
+def _run_jobs(jobs: Iterable[GroupJob], shared: tuple, update: UpdateParams,
+              strict: bool) -> Iterator[tuple[int, GroupOutcome | TaskFailure]]:
+    """(number, outcome or TaskFailure) per group; ``strict`` runs them here and lets errors through (in-memory
     callers want the exception, the command a report per building)."""
     if strict:
         for number, job in enumerate(jobs):
-            yield number, building_task(job, *shared)
+            yield number, group_task(job, *shared, strict=True)
         return
-    yield from map_tasks(building_task, jobs, update.workers, update.scheduler, shared=shared)
+    yield from map_tasks(group_task, jobs, update.workers, update.scheduler, shared=shared)
 
 
 @dataclasses.dataclass
@@ -438,9 +508,9 @@ def fuse_campaign(stored: BuildingMap, source: CampaignSource, trajectory: Traje
 
     ``spool_dir``: a folder for the spool (created, removed at the end), ``None`` keeps it in memory. ``strict``
     runs every building here and raises the first error; otherwise a failing building is reported in
-    ``failed``. ``progress(done, total)`` after every building. Raises :class:`~lidarmap.errors.InputError` for
-    an empty campaign, missing GPS times, times the trajectory does not cover, and a campaign none of whose building
-    points lies near a footprint.
+    ``failed``. ``progress(done, total)`` after every group of buildings. Raises
+    :class:`~lidarmap.errors.InputError` for an empty campaign, missing GPS times, times the trajectory does not
+    cover, and a campaign none of whose building points lies near a footprint.
     """
     update = update or UpdateParams()
     tm = timings if timings is not None else {}
@@ -453,12 +523,18 @@ def fuse_campaign(stored: BuildingMap, source: CampaignSource, trajectory: Traje
         campaign = _Campaign(spool, grid, classes, stats, building_cells,
                              campaign_track(trajectory, *stats.t_span, fparams.reach_step))
         todo = _buildings_near_points(footprints, campaign, fparams)
+        groups = building_groups(footprints, todo, update.group_size)
         tm["prepare"] = tm.get("prepare", 0.0) + time.perf_counter() - clock
         tree = shapely.STRtree(footprints.polygons)
-        jobs = (_job(b, stored, footprints, tree, campaign, fparams, rparams, campaign_id, seed) for b in todo)
+        jobs = (_group_job(group, stored, footprints, tree, campaign, fparams, rparams, campaign_id, seed)
+                for group in groups)
         outcomes: dict[int, Any] = {}
-        for number, outcome in _run_jobs(jobs, (trajectory, fparams, rparams), update, strict):
-            outcomes[todo[number]] = outcome
+        for number, result in _run_jobs(jobs, (trajectory, fparams, rparams), update, strict):
+            if isinstance(result, TaskFailure):  # the group's context could not be prepared: all its buildings
+                outcomes.update((b, result) for b in groups[number])
+            else:
+                _add_timings(tm, result.timings)
+                outcomes.update(zip(groups[number], result.outcomes))
             if progress is not None:
                 progress(len(outcomes), len(todo))
     return _assemble(stored, footprints, outcomes, stats, fparams, tm)

@@ -103,6 +103,34 @@ def test_tiny_chunks_stream_through_the_spool_and_give_the_same_map(sim, serial,
     assert export(path) == serial["export2"]
 
 
+@pytest.mark.parametrize("group_size", [0.0, 1000.0])
+def test_one_building_per_task_or_one_task_for_all_gives_the_same_map(sim, serial, tmp_path, monkeypatch,
+                                                                      group_size) -> None:
+    import lidarmap.map_update
+
+    members: list[list[str]] = []
+    real = lidarmap.map_update.group_task
+
+    def spy(job, *shared, **kwargs):
+        members.append([m.building_id for m in job.members])
+        return real(job, *shared, **kwargs)
+
+    monkeypatch.setattr(lidarmap.map_update, "group_task", spy)
+    config = tmp_path / "update.toml"
+    config.write_text(f"[update]\ngroup_size = {group_size}\n")
+    path = tmp_path / "city.lmap"
+    update(path, sim, 1, "--config", config)
+    assert export(path) == serial["export1"]
+    update(path, sim, 2, "--config", config)
+    assert export(path) == serial["export2"]
+    buildings = sorted(b for group in members for b in group)
+    assert len(buildings) >= 6 and len(set(buildings)) >= 3  # 2 campaigns x (2 buildings + the site)
+    if group_size:
+        assert len(members) == 2  # one task per campaign, sharing one context
+    else:
+        assert all(len(group) == 1 for group in members)
+
+
 def _doc(m) -> str:
     from lidarmap.export.cityjson import map_to_cityjson
 
@@ -191,8 +219,10 @@ def test_a_campaign_whose_every_building_fails_is_refused(sim, serial, tmp_path,
 def test_update_table_of_the_config(sim, tmp_path) -> None:
     from lidarmap.map_update import UpdateParams
 
-    assert (UpdateParams().workers, UpdateParams().scheduler, UpdateParams().chunk_points) == (1, "", 2_000_000)
+    assert (UpdateParams().workers, UpdateParams().scheduler, UpdateParams().chunk_points,
+            UpdateParams().group_size) == (1, "", 2_000_000, 60.0)
     for text, needle in (("[update]\nbogus = 1\n", "unknown option 'bogus' in [update]"),
+                         ("[update]\ngroup_size = -1.0\n", "group_size must be >= 0"),
                          ("[update]\nworkers = 0\n", "workers must be at least 1"),
                          ("[update]\nscheduler = 'host:1'\n", "must look like tcp://HOST:PORT")):
         config = tmp_path / "bad.toml"
