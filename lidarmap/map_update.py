@@ -440,8 +440,7 @@ def _building_job(b: int, stored: BuildingMap, footprints: Footprints, tree: sha
     job = BuildingJob(building_id=bid, footprint=polygon, properties=dict(footprints.properties[b]),
                       stored=building, neighbours=footprints.polygons[neighbours],
                       own=int(np.searchsorted(neighbours, b)), track_box=boxes.track, origin=campaign.grid.origin,
-                      campaign_id=campaign_id,
-                      seed=seed)
+                      campaign_id=campaign_id, seed=seed)
     return job, boxes
 
 
