@@ -1,7 +1,7 @@
 """The ablation the LiDAR-DenseSeg paper could not do: what each stage of the aerial pipeline adds.
 
 ``python benchmarks/bench_aerial.py [--seed S] [--method pointnet2|baseline] [--model FILE]`` simulates the default
-city (seed 0: 8 buildings, ALS only) and runs ``lidarmap.pipeline.run_pipeline`` once per variant:
+city (seed 0: 8 buildings, ALS only) and runs ``lidarmap.aerial.pipeline.run_pipeline`` once per variant:
 
 * naive baseline (MinecraftUBC): 1 m voxels of the points the delivered classification labels building;
 * segmentation only (stages none), + densify, + flatten, densify then flatten, flatten then densify.
@@ -28,13 +28,14 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
-from lidarmap.aerial_eval import chamfer_hausdorff, score_building_voxels  # noqa: E402
+from lidarmap.aerial.eval import chamfer_hausdorff, score_building_voxels  # noqa: E402
+from lidarmap.aerial.pipeline import PipelineConfig, RunParams, run_pipeline  # noqa: E402
+from lidarmap.aerial.voxel import VoxelParams
 from lidarmap.io.footprints import read_footprints  # noqa: E402
 from lidarmap.io.las import read_las  # noqa: E402
-from lidarmap.pipeline import PipelineConfig, RunParams, run_pipeline  # noqa: E402
+from lidarmap.io.voxels import read_voxels  # noqa: E402
 from lidarmap.sim import SimParams, load_truth, simulate  # noqa: E402
 from lidarmap.sim.distance import MeshDistance  # noqa: E402
-from lidarmap.voxel import VoxelParams, read_voxels  # noqa: E402
 
 VARIANTS = {
     "segmentation only": (),

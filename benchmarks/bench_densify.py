@@ -39,15 +39,23 @@ from scipy.sparse.csgraph import connected_components  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 from shapely.geometry import Polygon  # noqa: E402
 
-from lidarmap.densify import (DensifyParams, DensifyResult, GeometricUpsampler, Upsampler, densify,  # noqa: E402
-                              median_split, noise_amplification, seam_ratios)
+from lidarmap.aerial.densify import (
+    DensifyParams,
+    DensifyResult,
+    GeometricUpsampler,
+    Upsampler,
+    densify,
+    median_split,
+    noise_amplification,
+    seam_ratios,
+)
+from lidarmap.aerial.upsampler import load_upsampler  # noqa: E402
 from lidarmap.frame import LocalFrame  # noqa: E402
 from lidarmap.io.las import read_las  # noqa: E402
 from lidarmap.segment import recipe  # noqa: E402
 from lidarmap.sim import SimParams, build_city, load_truth, simulate  # noqa: E402
 from lidarmap.sim.distance import MeshDistance  # noqa: E402
 from lidarmap.sim.mesh import ABSORBER  # noqa: E402
-from lidarmap.upsampler import load_upsampler  # noqa: E402
 
 torch.set_num_threads(2)
 

@@ -26,15 +26,29 @@ from shapely.geometry import Polygon, box  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from test_facade import (BALCONY_RAIL, BALCONY_SLAB, DOOR, DOOR_RECESS, INTERIOR_Y, SENSOR_Z, VAN, WALL,  # noqa: E402
-                         _box_hits, _plane_hits, _windows)
+from test_facade import (  # noqa: E402
+    BALCONY_RAIL,
+    BALCONY_SLAB,
+    DOOR,
+    DOOR_RECESS,
+    INTERIOR_Y,
+    SENSOR_Z,
+    VAN,
+    WALL,
+    _box_hits,
+    _plane_hits,
+    _windows,
+)
 
-from lidarmap.facade import FacadeParams, extract_buildings  # noqa: E402
-from lidarmap.facade_eval import greedy_match  # noqa: E402
-from lidarmap.io.footprints import Footprints  # noqa: E402
-from lidarmap.io.pointcloud import PointCloud  # noqa: E402
-from lidarmap.io.trajectory import Trajectory  # noqa: E402
-from lidarmap.model import ElementKind  # noqa: E402
+from lidarmap.core import (
+    Footprints,  # noqa: E402
+    PointCloud,  # noqa: E402
+    Trajectory,  # noqa: E402
+)
+from lidarmap.facade.eval import greedy_match  # noqa: E402
+from lidarmap.facade.model import ElementKind  # noqa: E402
+from lidarmap.facade.params import FacadeParams
+from lidarmap.map.update import extract_buildings  # noqa: E402
 
 PITCH = 24.0  # building spacing along the street
 HALF_STREET = 8.0  # wall to sensor
@@ -167,7 +181,7 @@ def simulated_rows(seed: int, methods: tuple[str, ...]) -> tuple[list, dict]:
     """Extract every campaign of the simulator's standard scene with each plane method; score against its truth."""
     import tempfile
 
-    from lidarmap.facade_eval import evaluate_facades
+    from lidarmap.facade.eval import evaluate_facades
     from lidarmap.io.footprints import read_footprints
     from lidarmap.io.las import read_las
     from lidarmap.io.trajectory import read_trajectory
@@ -259,7 +273,7 @@ def main() -> None:
     print(f"### Accuracy: the simulator's standard scene (seed {args.sim_seed}: {info['buildings']} buildings incl. "
           f"the construction site, {info['campaigns']} campaigns)\n")
     print("Each campaign alone. Windows/doors: IoU >= 0.5 against truth openings at least 90 % visible to that "
-          "campaign (lidarmap.facade_eval). Plane offset: mean distance of a façade's corners to the true plane, "
+          "campaign (lidarmap.facade.observe.eval). Plane offset: mean distance of a façade's corners to the true plane, "
           "after undoing the campaign's simulated misregistration (1-4 cm shift, the data's own error, not the "
           "extraction's); 'raw' keeps it. Target: window F1 >= 0.80, offset < 3 cm.\n")
     print("| campaign | plane detection | points | s | window P | window R | window F1 | mean IoU | doors tp/fp/fn | "

@@ -31,8 +31,15 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from lidarmap.flatten import (FlattenParams, Plane, detect_planes, fit_plane, flatten, flatten_points,  # noqa: E402
-                              regularise_planes)
+from lidarmap.aerial.flatten import (
+    FlattenParams,
+    Plane,
+    detect_planes,
+    fit_plane,
+    flatten,
+    flatten_points,
+    regularise_planes,
+)
 from lidarmap.io.las import read_las  # noqa: E402
 from lidarmap.sim import SimParams, load_truth, simulate  # noqa: E402
 from lidarmap.sim.distance import MeshDistance  # noqa: E402

@@ -4,14 +4,14 @@
 construction site; campaigns differ in lane, direction, speed, parked cars and 1-4 cm of misregistration), then for
 each campaign k:
 
-* **refined**: the map after campaigns 1..k, each fused into the previous map (``lidarmap.refine.refine_map``) and
-  committed to a map store (``lidarmap.store.MapStore``: change counts, ``load(as_of)`` checked against the map held
+* **refined**: the map after campaigns 1..k, each fused into the previous map (``lidarmap.map.refine.refine_map``) and
+  committed to a map store (``lidarmap.map.store.MapStore``: change counts, ``load(as_of)`` checked against the map held
   in memory);
-* **from scratch** (baseline): campaign k extracted alone (``lidarmap.facade.extract_buildings``), timed back to back
+* **from scratch** (baseline): campaign k extracted alone (``lidarmap.map.update.extract_buildings``), timed back to back
   with the update;
 * **pooled** (baseline): all campaigns' points (and trajectories) pooled into one cloud and extracted at once.
 
-Windows are scored with ``lidarmap.facade_eval.evaluate_facades`` against the truth openings at least 90 % visible to
+Windows are scored with ``lidarmap.facade.observe.eval.evaluate_facades`` against the truth openings at least 90 % visible to
 *any* of the campaigns so far (``campaigns=``), in file coordinates (no misregistration undone: a refined map mixes
 campaigns). Prints one markdown section.
 """
@@ -31,14 +31,22 @@ os.environ.setdefault("MKL_NUM_THREADS", "2")
 
 import numpy as np  # noqa: E402
 
-from lidarmap.facade import FacadeParams, extract_buildings  # noqa: E402
-from lidarmap.facade_eval import evaluate_facades, map_statistics  # noqa: E402
+from lidarmap.core import (
+    PointCloud,  # noqa: E402
+    Trajectory,
+)
+from lidarmap.facade.eval import evaluate_facades, map_statistics  # noqa: E402
+from lidarmap.facade.model import ElementKind  # noqa: E402
+from lidarmap.facade.params import FacadeParams
 from lidarmap.io.footprints import read_footprints  # noqa: E402
 from lidarmap.io.las import read_las  # noqa: E402
-from lidarmap.io.pointcloud import PointCloud  # noqa: E402
-from lidarmap.io.trajectory import Trajectory, read_trajectory  # noqa: E402
-from lidarmap.model import BuildingMap, Campaign, ElementKind  # noqa: E402
-from lidarmap.refine import RefineParams, opening_uncertainty, refine_map  # noqa: E402
+from lidarmap.io.trajectory import read_trajectory  # noqa: E402
+from lidarmap.map.model import BuildingMap, Campaign
+from lidarmap.map.refine import RefineParams, opening_uncertainty
+from lidarmap.map.update import (
+    extract_buildings,  # noqa: E402
+    refine_map,  # noqa: E402
+)
 
 TARGET_F1 = 0.90
 POOLED_MARGIN = 0.02
@@ -81,8 +89,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--campaigns", type=int, default=4)
     args = ap.parse_args()
+    from lidarmap.map.store import MapStore
     from lidarmap.sim import SimParams, load_truth, simulate
-    from lidarmap.store import MapStore
 
     load_before = os.getloadavg()[0]
     fparams, rparams = FacadeParams(), RefineParams()

@@ -37,11 +37,11 @@ import shapely  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from lidarmap.aerial_eval import chamfer_hausdorff, voxel_scores, voxelize_mesh  # noqa: E402
+from lidarmap.aerial.eval import chamfer_hausdorff, voxel_scores, voxelize_mesh  # noqa: E402
+from lidarmap.aerial.mesh import MeshParams, surface_mesh, voxel_mesh  # noqa: E402
+from lidarmap.aerial.voxel import VoxelParams, voxelize, voxelize_naive  # noqa: E402
 from lidarmap.io.las import read_las  # noqa: E402
-from lidarmap.mesh import MeshParams, surface_mesh, voxel_mesh  # noqa: E402
 from lidarmap.sim import SimParams, load_truth, simulate  # noqa: E402
-from lidarmap.voxel import VoxelParams, voxelize, voxelize_naive  # noqa: E402
 
 
 def naive_numpy_voxelize(xyz: np.ndarray, labels: np.ndarray, rgb: np.ndarray, size: float):

@@ -27,11 +27,17 @@ import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
+from lidarmap.aerial.pipeline import (  # noqa: E402
+    PipelineConfig,
+    RunParams,
+    prep_tiles,  # noqa: E402
+    run_pipeline,
+)
+from lidarmap.aerial.prep import PrepParams
+from lidarmap.aerial.voxel import voxelize_naive  # noqa: E402
 from lidarmap.io.footprints import read_footprints  # noqa: E402
 from lidarmap.io.las import read_las  # noqa: E402
-from lidarmap.pipeline import PipelineConfig, RunParams, run_pipeline  # noqa: E402
-from lidarmap.prep import PrepParams, prep_tiles  # noqa: E402
-from lidarmap.voxel import read_voxels, voxelize_naive  # noqa: E402
+from lidarmap.io.voxels import read_voxels
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("LIDARMAP_DATA", ROOT.parent / "shared" / "data")) / "ahn3_delft"

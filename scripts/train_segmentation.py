@@ -3,8 +3,8 @@
 Trains, from the recipe in :mod:`lidarmap.segment.recipe` (real labelled data of ``../shared/data`` minus the
 held-out areas; the held-out points never reach training, not even as block context):
 
-* the PointNet++ model -> ``lidarmap/models/segment_pointnet2.pt``
-* the gradient-boosting baseline -> ``lidarmap/models/segment_baseline.joblib``
+* the PointNet++ model -> ``lidarmap/weights/segment_pointnet2.pt``
+* the gradient-boosting baseline -> ``lidarmap/weights/segment_baseline.joblib``
 
 Same data, seed and thread count give the same weights. One line per epoch goes to stdout (loss, learning rate,
 elapsed seconds, validation scores every ``val_every`` epochs). ``--config FILE`` overrides training parameters
@@ -18,7 +18,6 @@ import json
 import sys
 import time
 from pathlib import Path
-
 
 from lidarmap.config import load_toml, resolve
 from lidarmap.segment import recipe

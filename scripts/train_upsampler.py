@@ -32,12 +32,18 @@ import torch
 from scipy.spatial import cKDTree
 from torch.nn import functional as F
 
-from lidarmap.densify import _knn, local_spacing
+from lidarmap.aerial.surface import _knn, local_spacing
+from lidarmap.aerial.upsampler import (
+    DEFAULT_WEIGHTS,
+    PatchProjector,
+    UpsamplerArch,
+    patch_inputs,
+    save_upsampler,
+)
 from lidarmap.frame import LocalFrame
 from lidarmap.segment import recipe
 from lidarmap.sim import SimParams, build_city, load_truth, simulate
 from lidarmap.sim.mesh import ABSORBER
-from lidarmap.upsampler import DEFAULT_WEIGHTS, PatchProjector, UpsamplerArch, patch_inputs, save_upsampler
 
 SEED = 0
 THREADS = 2

@@ -6,11 +6,20 @@ import numpy as np
 import pytest
 import torch
 
+from lidarmap.aerial.densify import (
+    DensifyParams,
+    densify,
+    median_split,
+    new_point_counts,
+    noise_amplification,
+    remove_outliers,
+    seam_ratios,
+    transfer_colour,
+)
+from lidarmap.aerial.surface import area_per_point, flat_points
+from lidarmap.aerial.upsampler import DEFAULT_WEIGHTS, load_upsampler
 from lidarmap.config import resolve
-from lidarmap.densify import (DensifyParams, area_per_point, densify, flat_points, median_split, new_point_counts,
-                              noise_amplification, remove_outliers, seam_ratios, transfer_colour)
 from lidarmap.errors import ConfigError, InputError
-from lidarmap.upsampler import DEFAULT_WEIGHTS, load_upsampler
 
 OFFSET = np.array([431250.0, 5467830.0, 52.0])  # CRS-like coordinates: float32 would lose centimetres here
 

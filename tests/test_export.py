@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 from PIL import Image
 from shapely.geometry import box
+from test_store import map_v1, with_campaigns
 
 from lidarmap.export.cityjson import SCALE, map_to_cityjson, write_cityjson
 from lidarmap.export.render import MARGINS, facade_image_size, render_map
 from lidarmap.export.summary import count_map
 from lidarmap.export.validate import validate_cityjson
-from lidarmap.model import Building, BuildingMap
-from test_store import map_v1, with_campaigns
+from lidarmap.map.model import Building, BuildingMap
 
 HALF_MM = 0.5 * SCALE + 1e-9
 

@@ -1,4 +1,4 @@
-"""Façade extraction from one mobile campaign (lidarmap.facade): frames, layers, occlusion, windows, errors.
+"""Façade extraction from one mobile campaign (lidarmap.facade.observe): frames, layers, occlusion, windows, errors.
 
 The fixture is a small analytic scene ray-cast in numpy (no simulator needed): a 20 m x 10 m wall with a grid of
 window openings (an interior wall 6 m behind them returns the rays that pass through), a door leaf recessed by 0.3 m,
@@ -16,15 +16,21 @@ import pytest
 from pyproj import CRS
 from shapely.geometry import Point, Polygon, box
 
+from lidarmap.core import Footprints, PointCloud, Trajectory
 from lidarmap.errors import InputError, LidarmapError
-from lidarmap.facade import (FacadeParams, extract_buildings, fit_facade_frame, fit_layers, fit_rectangle,
-                             occlusion_mask, uncertainty_eq1, window_uncertainty_eq3)
-from lidarmap.facade_eval import greedy_match, polygon_iou
-from lidarmap.facade_layers import depth_grid
-from lidarmap.io.footprints import Footprints
-from lidarmap.io.pointcloud import PointCloud
-from lidarmap.io.trajectory import Trajectory
-from lidarmap.model import ElementKind, FacadeFrame
+from lidarmap.facade.eval import greedy_match, polygon_iou
+from lidarmap.facade.layers import depth_grid
+from lidarmap.facade.model import ElementKind, FacadeFrame
+from lidarmap.facade.observe import (
+    fit_facade_frame,
+    fit_layers,
+    fit_rectangle,
+    occlusion_mask,
+    uncertainty_eq1,
+    window_uncertainty_eq3,
+)
+from lidarmap.facade.params import FacadeParams
+from lidarmap.map.update import extract_buildings
 
 CRS_UTM = CRS.from_epsg(25832)
 
@@ -274,7 +280,7 @@ def test_fit_rectangle_recovers_noisy_window():
 
 
 def test_refine_bounds_places_sides_below_the_cell_size():
-    from lidarmap.facade_windows import refine_bounds
+    from lidarmap.facade.openings import refine_bounds
 
     params = FacadeParams()
     true = (1.23, 2.41, 0.97, 2.52)  # s0, s1, t0, t1 of a window; wall sampled every 4 cm (s) x 7 cm (t)
@@ -296,7 +302,7 @@ def test_refine_bounds_places_sides_below_the_cell_size():
 
 
 def test_complete_by_repetition_restores_a_window_cut_by_a_shadow():
-    from lidarmap.facade_windows import complete_by_repetition, detect_openings
+    from lidarmap.facade.openings import complete_by_repetition, detect_openings
 
     values = -np.ones((80, 40), dtype=np.int8)
     values[5:20, 10:22] = 1  # ground floor window (clean), 1.5 m tall
@@ -417,7 +423,8 @@ def test_region_growing_method_agrees(scene):
 
 def test_observe_known_facade_with_another_campaign(scene, extracted):
     """The refinement path: a second campaign (the van has left) observed on the first campaign's frame and grid."""
-    from lidarmap.facade import observe_facade, prepare_campaign
+    from lidarmap.facade.campaign import prepare_campaign
+    from lidarmap.facade.observe import observe_facade
 
     f1 = extracted[0][0].facades[0]
     cloud, traj, fps, truth = make_scene(van=False, step=0.07, seed=5)
@@ -437,7 +444,7 @@ def test_observe_known_facade_with_another_campaign(scene, extracted):
 
 
 def test_plane_pieces_found_out_of_order_become_one_facade():
-    from lidarmap.facade_planes import VerticalPlane, group_planes
+    from lidarmap.facade.planes import VerticalPlane, group_planes
 
     n = np.array([math.cos(2.3), math.sin(2.3)])
     u = np.array([-n[1], n[0]])
@@ -532,7 +539,7 @@ def tiny_sim(tmp_path_factory):
 
 
 def test_simulated_scene_window_f1_and_plane_offset(tiny_sim):
-    from lidarmap.facade_eval import evaluate_facades
+    from lidarmap.facade.eval import evaluate_facades
 
     truth, camp, buildings, seconds, n_points = tiny_sim
     scored = evaluate_facades(buildings, truth, camp.id, register=camp.register)

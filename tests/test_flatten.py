@@ -1,4 +1,4 @@
-"""Planar flattening (lidarmap.flatten): plane detection, regularisation, flattening, errors.
+"""Planar flattening (lidarmap.aerial.flatten): plane detection, regularisation, flattening, errors.
 
 Fixtures are analytic (a noisy tilted plane with a cloud of clutter above it; a gabled house with a chimney, in CRS
 coordinates, roofs scanned densely and walls in sparse vertical scan-line stripes as airborne LiDAR sees them) plus one
@@ -13,10 +13,17 @@ import math
 import numpy as np
 import pytest
 
+from lidarmap.aerial.flatten import (
+    FlattenParams,
+    Plane,
+    detect_planes,
+    flatten,
+    flatten_points,
+    main_axis_deg,
+    regularise_planes,
+)
 from lidarmap.config import resolve
 from lidarmap.errors import ConfigError, InputError
-from lidarmap.flatten import (FlattenParams, Plane, detect_planes, flatten, flatten_points, main_axis_deg,
-                              regularise_planes)
 
 OFFSET = np.array([500321.0, 5800456.0, 60.0])  # CRS-sized coordinates
 ANGLE = 23.0  # the house's axes against the CRS axes, degrees

@@ -13,12 +13,12 @@ import pytest
 from pyproj import CRS
 from shapely.geometry import Polygon
 
+from lidarmap.core import PointCloud, Trajectory
 from lidarmap.errors import CRSError, InputError
 from lidarmap.io.footprints import check_overlap, read_footprints, write_geojson_wgs84
 from lidarmap.io.info import las_info
 from lidarmap.io.las import iter_las, read_las, write_las
-from lidarmap.io.pointcloud import PointCloud
-from lidarmap.io.trajectory import Trajectory, read_trajectory, write_trajectory
+from lidarmap.io.trajectory import read_trajectory, write_trajectory
 
 UTM32 = CRS.from_epsg(32632)
 

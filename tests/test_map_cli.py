@@ -23,7 +23,7 @@ from lidarmap.export.render import facade_image_size
 from lidarmap.export.summary import count_map
 from lidarmap.export.validate import validate_cityjson
 from lidarmap.io.footprints import read_footprints
-from lidarmap.store import MapStore, campaign_fingerprint
+from lidarmap.map.store import MapStore, campaign_fingerprint
 
 
 def one_line_error(code: int, err: str, *needles: str) -> None:
@@ -159,16 +159,16 @@ def test_second_campaign_refines_the_map_and_as_of_exports_the_first(sim, map1, 
 
 
 def test_aerial_update_adds_roof_planes_to_the_maps_buildings(sim, map_copy, tmp_path, monkeypatch) -> None:
-    import lidarmap.refine
+    import lidarmap.map.refine
 
     seen = {}
-    real = lidarmap.refine.add_aerial
+    real = lidarmap.map.refine.add_aerial
 
     def spy(stored, cloud, footprints, params, campaign_id, seed):
         seen.update(ids=list(footprints.ids), n=len(cloud), campaign_id=campaign_id, seed=seed)
         return real(stored, cloud, footprints, params, campaign_id, seed)
 
-    monkeypatch.setattr(lidarmap.refine, "add_aerial", spy)
+    monkeypatch.setattr(lidarmap.map.refine, "add_aerial", spy)
     code, out, err = run("map", "update", map_copy, "--aerial", sim.als, "--seed", "4")
     assert code == 0, err
     with MapStore.open(map_copy) as store:
@@ -191,7 +191,7 @@ def test_aerial_update_adds_roof_planes_to_the_maps_buildings(sim, map_copy, tmp
 
 def test_a_second_process_updating_the_map_is_refused(sim, map_copy, tmp_path) -> None:
     holder = subprocess.Popen([sys.executable, "-c", (
-        "import sys; from lidarmap.store import writer_lock\n"
+        "import sys; from lidarmap.map.store import writer_lock\n"
         "with writer_lock(sys.argv[1]):\n    print('locked', flush=True); sys.stdin.readline()"), str(map_copy)],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from conftest import run_cli_in_process as run
 
-from lidarmap.store import MapStore
+from lidarmap.map.store import MapStore
 
 
 def campaign_args(sim, i: int) -> list[object]:
@@ -69,7 +69,7 @@ def test_workers_and_a_remote_scheduler_give_the_serial_map(sim, serial, tmp_pat
 
 def test_tiny_chunks_stream_through_the_spool_and_give_the_same_map(sim, serial, tmp_path, monkeypatch) -> None:
     import lidarmap.io.las
-    from lidarmap.spool import ColumnSpool
+    from lidarmap.io.spool import ColumnSpool
 
     def whole_file(*args, **kwargs):
         raise AssertionError("a mobile campaign must be streamed, never read whole")
@@ -106,16 +106,16 @@ def test_tiny_chunks_stream_through_the_spool_and_give_the_same_map(sim, serial,
 @pytest.mark.parametrize("group_size", [0.0, 1000.0])
 def test_one_building_per_task_or_one_task_for_all_gives_the_same_map(sim, serial, tmp_path, monkeypatch,
                                                                       group_size) -> None:
-    import lidarmap.map_update
+    import lidarmap.map.update
 
     members: list[list[str]] = []
-    real = lidarmap.map_update.group_task
+    real = lidarmap.map.update.group_task
 
     def spy(job, *shared, **kwargs):
         members.append([m.building_id for m in job.members])
         return real(job, *shared, **kwargs)
 
-    monkeypatch.setattr(lidarmap.map_update, "group_task", spy)
+    monkeypatch.setattr(lidarmap.map.update, "group_task", spy)
     config = tmp_path / "update.toml"
     config.write_text(f"[update]\ngroup_size = {group_size}\n")
     path = tmp_path / "city.lmap"
@@ -140,13 +140,18 @@ def _doc(m) -> str:
 def test_height_rule_ground_gives_the_same_map_in_one_chunk_and_in_many(sim) -> None:
     """Without classes, ground comes from the lowest points of 2 m cells around each point: gathered chunk by
     chunk, it must give exactly the ground (and the map) of the whole campaign at once."""
-    from lidarmap.facade import FacadeParams
+    from lidarmap.facade.params import FacadeParams
     from lidarmap.io.footprints import read_footprints
     from lidarmap.io.las import read_las
     from lidarmap.io.trajectory import read_trajectory
-    from lidarmap.map_update import CampaignSource, UpdateParams, cloud_source, fuse_campaign
-    from lidarmap.model import BuildingMap
-    from lidarmap.refine import RefineParams
+    from lidarmap.map.model import BuildingMap
+    from lidarmap.map.refine import RefineParams
+    from lidarmap.map.update import (
+        CampaignSource,
+        UpdateParams,
+        cloud_source,
+        fuse_campaign,
+    )
 
     cloud = read_las(sim.mls[0])
     del cloud.attrs["classification"]
@@ -174,21 +179,21 @@ def _building(path: Path, bid: str) -> str:
 
 def test_a_failing_building_is_reported_kept_as_stored_and_the_others_committed(sim, serial, tmp_path,
                                                                                    monkeypatch) -> None:
-    import lidarmap.map_update
+    import lidarmap.map.update
 
     path = tmp_path / "city.lmap"
     shutil.copyfile(serial["map1"], path)
     with MapStore.open(path) as store:
         before = store.load()
     victim = sorted(before.buildings)[0]
-    real = lidarmap.map_update.building_task
+    real = lidarmap.map.update.building_task
 
     def flaky(job, *shared):
         if job.building_id == victim:
             raise ValueError("simulated bad data")
         return real(job, *shared)
 
-    monkeypatch.setattr(lidarmap.map_update, "building_task", flaky)
+    monkeypatch.setattr(lidarmap.map.update, "building_task", flaky)
     out = update(path, sim, 2)
     assert f"failed {victim}: ValueError: simulated bad data (kept as stored)" in out
     assert "1 building(s) failed" in out
@@ -202,12 +207,12 @@ def test_a_failing_building_is_reported_kept_as_stored_and_the_others_committed(
 
 
 def test_a_campaign_whose_every_building_fails_is_refused(sim, serial, tmp_path, monkeypatch) -> None:
-    import lidarmap.map_update
+    import lidarmap.map.update
 
     def broken(job, *shared):
         raise RuntimeError("a bug")
 
-    monkeypatch.setattr(lidarmap.map_update, "building_task", broken)
+    monkeypatch.setattr(lidarmap.map.update, "building_task", broken)
     path = tmp_path / "city.lmap"
     shutil.copyfile(serial["map1"], path)
     before = path.read_bytes()
@@ -217,7 +222,7 @@ def test_a_campaign_whose_every_building_fails_is_refused(sim, serial, tmp_path,
 
 
 def test_update_table_of_the_config(sim, tmp_path) -> None:
-    from lidarmap.map_update import UpdateParams
+    from lidarmap.map.update import UpdateParams
 
     assert (UpdateParams().workers, UpdateParams().scheduler, UpdateParams().chunk_points,
             UpdateParams().group_size) == (1, "", 2_000_000, 60.0)

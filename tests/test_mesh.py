@@ -1,4 +1,4 @@
-"""Meshes (lidarmap.mesh) and their scores (lidarmap.aerial_eval): watertight voxel meshes for any voxel set, 2.5D
+"""Meshes (lidarmap.aerial.mesh) and their scores (lidarmap.aerial.eval): watertight voxel meshes for any voxel set, 2.5D
 surface meshes, float64 PLY/OBJ files, surface/solid voxels of a mesh, IoU, Chamfer and Hausdorff distances.
 
 The simulated scene (2 buildings, no mobile campaign) gives ALS points and the truth solids to score against.
@@ -13,13 +13,20 @@ import trimesh
 from shapely.affinity import rotate, translate
 from shapely.geometry import Polygon, box
 
-from lidarmap.aerial_eval import chamfer_hausdorff, voxel_iou, voxel_scores, voxelize_mesh
+from lidarmap.aerial.eval import (
+    chamfer_hausdorff,
+    voxel_iou,
+    voxel_scores,
+    voxelize_mesh,
+)
+from lidarmap.aerial.mesh import MeshParams, outline_polygon, surface_mesh, voxel_mesh
+from lidarmap.aerial.voxel import VoxelParams, fill_columns, voxelize
+from lidarmap.core import VoxelGrid
 from lidarmap.errors import ConfigError, InputError
 from lidarmap.io.las import read_las
-from lidarmap.mesh import MeshParams, outline_polygon, surface_mesh, voxel_mesh, write_mesh
+from lidarmap.io.meshfile import write_mesh
 from lidarmap.sim import SimParams, load_truth, simulate
 from lidarmap.sim.distance import MeshDistance
-from lidarmap.voxel import VoxelGrid, VoxelParams, fill_columns, voxelize
 
 UTM = np.array([500123.0, 5800456.0, 87.0])
 

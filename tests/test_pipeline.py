@@ -13,16 +13,24 @@ import pytest
 import shapely
 import trimesh
 
-from lidarmap.densify import DensifyParams
+from lidarmap.aerial.densify import DensifyParams
+from lidarmap.aerial.flatten import FlattenParams
+from lidarmap.aerial.pipeline import (
+    NOISE_CLASS,
+    PipelineConfig,
+    RunParams,
+    building_voxels,
+    densify_cloud,
+    flatten_cloud,
+    run_pipeline,
+)
+from lidarmap.aerial.voxel import VoxelParams
+from lidarmap.core import PointCloud
 from lidarmap.export.validate import validate_cityjson
-from lidarmap.flatten import FlattenParams
 from lidarmap.io.footprints import read_footprints
 from lidarmap.io.las import read_las, write_las
-from lidarmap.io.pointcloud import PointCloud
-from lidarmap.pipeline import (NOISE_CLASS, PipelineConfig, RunParams, building_voxels, densify_cloud, flatten_cloud,
-                               run_pipeline)
+from lidarmap.io.voxels import read_voxels
 from lidarmap.sim import SimParams, load_truth, simulate
-from lidarmap.voxel import VoxelParams, read_voxels
 
 DATA_FILES = ("points.laz", "voxels.npz", "voxels.vox", "mesh.ply", "mesh.obj", "mesh_voxels.ply")
 

@@ -13,13 +13,20 @@ import shapely
 from pyproj import CRS
 from shapely.geometry import Polygon, box
 
+from lidarmap.aerial.pipeline import prep_tiles
+from lidarmap.aerial.prep import (
+    FootprintIndex,
+    PrepParams,
+    assign_points,
+    canonical_order,
+    prep_cloud,
+)
+from lidarmap.core import Footprints, PointCloud
 from lidarmap.errors import ConfigError, CRSError, InputError
 from lidarmap.frame import LocalFrame
-from lidarmap.io.footprints import Footprints, read_footprints, write_geojson_wgs84
+from lidarmap.io.footprints import read_footprints, write_geojson_wgs84
 from lidarmap.io.las import read_las, write_las
-from lidarmap.io.pointcloud import PointCloud
-from lidarmap.prep import (FootprintIndex, PrepParams, assign_points, canonical_order, prep_cloud, prep_tiles,
-                           read_prep_index, write_prep)
+from lidarmap.io.prepdir import read_prep_index, write_prep
 
 UTM32 = CRS.from_epsg(32632)
 RD = "EPSG:28992"

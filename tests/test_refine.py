@@ -1,4 +1,4 @@
-"""Incremental refinement (lidarmap.refine, paper §2.5): eq. (4)-(7), the vote-map refit, campaigns fused into a map.
+"""Incremental refinement (lidarmap.map.refine, paper §2.5): eq. (4)-(7), the vote-map refit, campaigns fused into a map.
 
 Two scenes: the synthetic façade of tests/test_facade.py (a van hides a ground-floor window in campaign 1 and has
 left in campaign 2), and a small simulated city (2 buildings, 3 campaigns differing in lane, parked cars and
@@ -15,14 +15,23 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 from shapely.geometry import box
-
-from lidarmap.facade import FacadeParams, window_uncertainty_eq3
-from lidarmap.facade_eval import polygon_iou
-from lidarmap.facade_windows import HOLE, OBJECT, OCCLUDED
-from lidarmap.model import BuildingMap, Campaign, Element, ElementKind, Layer
-from lidarmap.refine import (RefineParams, add_aerial, fuse_gaussians, match_layers, refine_map, refit_rectangle,
-                             weighted_window_uncertainty)
 from test_facade import CRS_UTM, _facade_rect, make_scene
+
+from lidarmap.facade.eval import polygon_iou
+from lidarmap.facade.model import Element, ElementKind, Layer
+from lidarmap.facade.observe import window_uncertainty_eq3
+from lidarmap.facade.openings import HOLE, OBJECT, OCCLUDED
+from lidarmap.facade.params import FacadeParams
+from lidarmap.map.model import BuildingMap, Campaign
+from lidarmap.map.refine import (
+    RefineParams,
+    add_aerial,
+    fuse_gaussians,
+    match_layers,
+    refit_rectangle,
+    weighted_window_uncertainty,
+)
+from lidarmap.map.update import refine_map
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Eq. (4)-(7)
@@ -100,7 +109,7 @@ def test_vote_map_refit_hand_case():
 
 
 def test_window_split_by_an_old_occlusion_merges_and_its_unknown_gap_goes():
-    from lidarmap.refine import _fuse_openings, _fuse_unknown, _Grid, _Ids, _Votes
+    from lidarmap.map.refine import _fuse_openings, _fuse_unknown, _Grid, _Ids, _Votes
 
     grid = _Grid(0.0, 0.0, 0.1, (20, 30))
     full, left, right, pole = box(0.5, 0.5, 1.7, 1.5), box(0.5, 0.5, 1.0, 1.5), box(1.2, 0.5, 1.7, 1.5), \
@@ -202,7 +211,7 @@ def test_refinement_is_deterministic(synthetic_maps):
 
 def test_as_of_reproduces_the_earlier_export_exactly(synthetic_maps, tmp_path):
     from lidarmap.export.cityjson import map_to_cityjson
-    from lidarmap.store import MapStore
+    from lidarmap.map.store import MapStore
 
     _, _, m1, m2 = synthetic_maps
     store = MapStore.create(tmp_path / "city.lmap", CRS_UTM.to_wkt())
@@ -223,7 +232,7 @@ def test_as_of_reproduces_the_earlier_export_exactly(synthetic_maps, tmp_path):
 
 
 def test_layer_conflict_goes_to_the_lower_uncertainty():
-    from lidarmap.refine import _resolve_layer_conflicts
+    from lidarmap.map.refine import _resolve_layer_conflicts
 
     balcony = Element(1, ElementKind.STRUCTURE, box(0, 0, 2, 1), layer_id=3, uncertainty=0.05, campaigns=[1, 2])
     clutter = Element(2, ElementKind.STRUCTURE, box(1.5, 0, 3, 1), layer_id=4, uncertainty=0.6, campaigns=[2])
@@ -235,7 +244,7 @@ def test_layer_conflict_goes_to_the_lower_uncertainty():
 
 
 def test_structures_found_by_a_minority_of_the_campaigns_that_saw_them_are_dropped():
-    from lidarmap.refine import _fuse_structures, _Grid, _Ids, _Votes
+    from lidarmap.map.refine import _fuse_structures, _Grid, _Ids, _Votes
 
     grid = _Grid(0.0, 0.0, 0.1, (40, 60))  # 6 m x 4 m, 10 cm cells
 
@@ -301,7 +310,7 @@ def sim_city(tmp_path_factory):
 
 
 def test_simulated_campaigns_refine_the_map(sim_city):
-    from lidarmap.facade_eval import evaluate_facades, map_statistics
+    from lidarmap.facade.eval import evaluate_facades, map_statistics
 
     _, truth, _, maps = sim_city
     f1 = []

@@ -13,14 +13,14 @@ import pytest
 from distributed import LocalCluster
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from lidarmap.distributed import TaskFailure, map_tasks
+from lidarmap.aerial.pipeline import PipelineConfig, RunParams, run_pipeline
+from lidarmap.aerial.prep import PrepParams
 from lidarmap.errors import InputError
+from lidarmap.executor import TaskFailure, map_tasks
 from lidarmap.io.footprints import read_footprints
 from lidarmap.io.las import read_las, write_las
-from lidarmap.pipeline import PipelineConfig, RunParams, run_pipeline
-from lidarmap.prep import PrepParams
+from lidarmap.io.spool import ColumnSpool
 from lidarmap.sim import SimParams, simulate
-from lidarmap.spool import ColumnSpool
 
 # the task functions and the plugin below travel to the worker processes by value (tests/ is not importable there)
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
@@ -179,8 +179,9 @@ def test_a_remote_scheduler_with_a_killed_worker_writes_the_serial_results(city:
 
 
 def test_a_scheduler_without_workers_is_a_one_line_error_not_a_hang(city: Path, tmp_path: Path, monkeypatch) -> None:
-    import lidarmap.distributed as distributed
     from conftest import run_cli_in_process
+
+    import lidarmap.executor as distributed
 
     monkeypatch.setattr(distributed, "WORKERS_TIMEOUT_S", 1)
     with LocalCluster(n_workers=0, processes=True, dashboard_address=None, host="127.0.0.1") as empty:
@@ -193,7 +194,7 @@ def test_a_scheduler_without_workers_is_a_one_line_error_not_a_hang(city: Path, 
 
 
 def test_a_failing_building_is_reported_and_the_others_are_written(city: Path, tmp_path: Path, monkeypatch) -> None:
-    import lidarmap.pipeline as pipeline
+    import lidarmap.aerial.pipeline as pipeline
 
     real = pipeline.process_building
 

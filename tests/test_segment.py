@@ -12,19 +12,37 @@ import pytest
 import torch
 from pyproj import CRS
 
+from lidarmap.core import PointCloud
 from lidarmap.errors import InputError
 from lidarmap.io.las import read_las, write_las
-from lidarmap.io.pointcloud import PointCloud
-from lidarmap.segment.baseline import BaselineParams, load_baseline, predict_baseline, save_baseline, train_baseline
-from lidarmap.segment.blocks import IGNORE, binary_labels, hide_labels, window_centres
+from lidarmap.segment.baseline import (
+    BaselineParams,
+    load_baseline,
+    predict_baseline,
+    save_baseline,
+    train_baseline,
+)
+from lidarmap.segment.blocks import (
+    IGNORE,
+    binary_labels,
+    class_weights,
+    hide_labels,
+    window_centres,
+)
 from lidarmap.segment.features import FeatureSpec, ModelSpecError, point_features
 from lidarmap.segment.metrics import confusion_matrix, evaluate_classes, scores
 from lidarmap.segment.modelfile import load_model, model_to_dict, save_model
 from lidarmap.segment.neighbors import ball_query, farthest_point_sampling, knn
 from lidarmap.segment.pointnet2 import Arch
-from lidarmap.segment.predict import (PROBABILITY_DIM, PredictParams, apply_classes, predict, segmented_cloud,
-                                      spread_to_all)
-from lidarmap.segment.train import TrainParams, class_weights, train
+from lidarmap.segment.predict import (
+    PROBABILITY_DIM,
+    PredictParams,
+    apply_classes,
+    predict,
+    segmented_cloud,
+    spread_to_all,
+)
+from lidarmap.segment.train import TrainParams, train
 
 UTM32 = CRS.from_epsg(32632)
 TINY_ARCH = dict(sa_npoints=(128, 32), sa_radii=(2.0, 5.0), sa_nsample=(12, 12), sa_mlps=((16, 32), (32, 64)),
@@ -313,8 +331,9 @@ def test_cli_predict_keeps_order_count_and_writes_probability(tmp_path: Path, cl
 def test_cli_predict_prep_folder_and_evaluate(tmp_path: Path, cli_files) -> None:
     from shapely.geometry import box
 
-    from lidarmap.io.footprints import Footprints
-    from lidarmap.prep import PrepParams, prep_cloud, read_prep_index, write_prep
+    from lidarmap.aerial.prep import PrepParams, prep_cloud
+    from lidarmap.core import Footprints
+    from lidarmap.io.prepdir import read_prep_index, write_prep
 
     cloud = read_las(cli_files["scene"])
     fps = Footprints(["w", "e"], np.array([box(500000, 5800000, 500024, 5800048),

@@ -1,4 +1,4 @@
-"""The map store (lidarmap.store): exact round trips, history (as_of), one-transaction commits that survive a killed
+"""The map store (lidarmap.map.store): exact round trips, history (as_of), one-transaction commits that survive a killed
 process, the writer lock, schema versions and one-line errors for files that are not maps.
 
 Maps are synthetic (no simulator): two buildings with every kind of content (frames at 30°, layers, a window, a door,
@@ -28,9 +28,22 @@ from pyproj import CRS
 from shapely.geometry import MultiPolygon, Polygon, box
 
 from lidarmap.errors import InputError, LidarmapError, MapLockedError
-from lidarmap.model import (Building, BuildingMap, Campaign, Element, ElementKind, Facade, FacadeEvidence,
-                            FacadeFrame, Layer, RoofPlane)
-from lidarmap.store import SCHEMA_VERSION, MapStore, campaign_fingerprint, lock_path_for, writer_lock
+from lidarmap.facade.model import (
+    Element,
+    ElementKind,
+    Facade,
+    FacadeEvidence,
+    FacadeFrame,
+    Layer,
+)
+from lidarmap.map.model import Building, BuildingMap, Campaign, RoofPlane
+from lidarmap.map.store import (
+    SCHEMA_VERSION,
+    MapStore,
+    campaign_fingerprint,
+    lock_path_for,
+    writer_lock,
+)
 
 CRS_WKT = CRS.from_epsg(32632).to_wkt()
 ORIGIN = np.array([500123.456789012, 5800321.123456789, 41.5])
@@ -244,7 +257,7 @@ def test_fingerprint_is_the_bytes_of_points_then_trajectory(tmp_path: Path) -> N
 
 _CHILD_PRELUDE = """
 import os, pickle, signal, sys, time
-import lidarmap.store as st
+import lidarmap.map.store as st
 """
 
 

@@ -1,4 +1,4 @@
-"""Voxelization (lidarmap.voxel): majority labels, colours, exact CRS mapping, the naive baseline, files, viewers.
+"""Voxelization (lidarmap.aerial.voxel): majority labels, colours, exact CRS mapping, the naive baseline, files, viewers.
 
 Synthetic points check the rules against brute force; a small simulated scene (2 buildings, no mobile campaign)
 checks voxel IoU against the truth solids: the majority voxels of the true building points against the naive
@@ -17,13 +17,20 @@ import shapely
 import trimesh
 from pyproj import CRS
 
-from lidarmap.aerial_eval import voxel_scores, voxelize_mesh
+from lidarmap.aerial.eval import voxel_scores, voxelize_mesh
+from lidarmap.aerial.voxel import (
+    VoxelParams,
+    default_origin,
+    fill_columns,
+    voxelize,
+    voxelize_naive,
+)
 from lidarmap.config import resolve
+from lidarmap.core import VoxelGrid
 from lidarmap.errors import ConfigError, InputError
 from lidarmap.io.las import read_las
+from lidarmap.io.voxels import read_voxels, write_vox, write_voxel_ply, write_voxels
 from lidarmap.sim import SimParams, load_truth, simulate
-from lidarmap.voxel import (VoxelGrid, VoxelParams, default_origin, fill_columns, read_voxels, voxelize,
-                            voxelize_naive, write_vox, write_voxel_ply, write_voxels)
 
 UTM = np.array([500123.0, 5800456.0, 87.0])
 CRS_UTM = CRS.from_epsg(32632)

@@ -16,8 +16,17 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from lidarmap.cli.common import (ConfigOption, CrsOption, FootprintsOption, IdFieldOption, SeedOption, handle_errors,
-                                 params_from, progress, table_console)
+from lidarmap.cli.common import (
+    ConfigOption,
+    CrsOption,
+    FootprintsOption,
+    IdFieldOption,
+    SeedOption,
+    handle_errors,
+    params_from,
+    progress,
+    table_console,
+)
 from lidarmap.errors import ConfigError, InputError
 
 InputsArgument = typer.Argument(..., help="LAS/LAZ files (their class-6 points are the building).")
@@ -56,8 +65,8 @@ def _each(paths: list[Path], description: str, work: Callable[[Path], Any]) -> l
 
 
 def _read_building_points(path: Path, crs: str | None, min_points: int = 3):
+    from lidarmap.aerial.pipeline import building_mask
     from lidarmap.io.las import read_las
-    from lidarmap.pipeline import building_mask
 
     cloud = read_las(path, crs=crs)
     n = int(building_mask(cloud).sum())
@@ -102,9 +111,9 @@ def densify_command(
 ) -> None:
     """Densify the building points: input points kept (outliers become class 7), new points appended (class 6, LAS
     synthetic flag), colour carried over by inverse-distance-weighted neighbours."""
-    from lidarmap.densify import DensifyParams
+    from lidarmap.aerial.densify import DensifyParams
+    from lidarmap.aerial.pipeline import densify_cloud
     from lidarmap.io.las import write_las
-    from lidarmap.pipeline import densify_cloud
 
     params = params_from(DensifyParams, config, ratio=ratio, distribution=distribution, upsampler=upsampler,
                          weights=None if weights is None else str(weights), halo=halo, max_leaf=max_leaf,
@@ -137,10 +146,10 @@ def flatten_command(
 ) -> None:
     """Detect planes in the building points and move their points onto them (extra dimension plane_id); writes
     <name>.laz and <name>.planes.json (normal, offset, rms, points of every plane)."""
-    from lidarmap.flatten import FlattenParams
+    from lidarmap.aerial.flatten import FlattenParams
+    from lidarmap.aerial.pipeline import flatten_cloud
     from lidarmap.io.atomic import write_text_atomic
     from lidarmap.io.las import write_las
-    from lidarmap.pipeline import flatten_cloud
 
     params = params_from(FlattenParams, config, method=method, distance=distance, min_points=min_points,
                          regularise=regularise)
@@ -177,9 +186,10 @@ def voxelize_command(
 ) -> None:
     """Building voxels with the true majority label (building vs the rest, noise left out) and mean colour:
     <name>.voxels.npz (voxel size, origin and CRS kept; docs/voxel_mesh.md), .vox, .cubes.ply."""
+    from lidarmap.aerial.pipeline import building_voxels
+    from lidarmap.aerial.voxel import VoxelParams, voxelize_naive
     from lidarmap.io.las import read_las
-    from lidarmap.pipeline import building_voxels
-    from lidarmap.voxel import VoxelParams, voxelize_naive, write_vox, write_voxel_ply, write_voxels
+    from lidarmap.io.voxels import write_vox, write_voxel_ply, write_voxels
 
     params = params_from(VoxelParams, config, size=size, min_points=min_points)
 
@@ -218,7 +228,7 @@ def mesh_command(
 ) -> None:
     """Meshes of buildings in the input CRS with double-precision coordinates: <name>.ply and <name>.obj (method
     surface or voxels), or <name>.surface.* and <name>.voxels.* (both)."""
-    from lidarmap.mesh import MeshParams
+    from lidarmap.aerial.mesh import MeshParams
 
     if method not in ("surface", "voxels", "both"):
         raise ConfigError(f"unknown --method {method!r} (known: surface, voxels, both)")
@@ -231,7 +241,7 @@ def mesh_command(
         fps = read_footprints(footprints)
 
     def work(path: Path) -> list[Any]:
-        from lidarmap.mesh import write_mesh
+        from lidarmap.io.meshfile import write_mesh
 
         meshes = _meshes_of(path, kinds, params, size or 0.5, fps, crs)
         for kind, mesh in meshes.items():
@@ -249,9 +259,10 @@ def _meshes_of(path: Path, kinds: list[str], params: Any, size: float, fps: Any,
     """Meshes of one input: a voxel file gives a voxel mesh; points give either kind."""
     import dataclasses
 
-    from lidarmap.mesh import surface_mesh, voxel_mesh
-    from lidarmap.pipeline import building_mask
-    from lidarmap.voxel import VoxelParams, read_voxels, voxelize
+    from lidarmap.aerial.mesh import surface_mesh, voxel_mesh
+    from lidarmap.aerial.pipeline import building_mask
+    from lidarmap.aerial.voxel import VoxelParams, voxelize
+    from lidarmap.io.voxels import read_voxels
 
     if path.name.endswith(".npz"):
         if kinds != ["voxels"]:
@@ -328,14 +339,14 @@ def run_command(
 def _pipeline_config(config: Path | None, *, stages: str | None, method: str | None, model: Path | None,
                      union: bool | None, voxel_size: float | None, mesh: str | None, workers: int | None,
                      scheduler: str | None, id_field: str | None, seed: int | None) -> Any:
+    from lidarmap.aerial.densify import DensifyParams
+    from lidarmap.aerial.flatten import FlattenParams
+    from lidarmap.aerial.mesh import MeshParams
+    from lidarmap.aerial.pipeline import PipelineConfig, RunParams, check_stage_names
+    from lidarmap.aerial.prep import PrepParams
+    from lidarmap.aerial.voxel import VoxelParams
     from lidarmap.config import check_sections, load_toml
-    from lidarmap.densify import DensifyParams
-    from lidarmap.flatten import FlattenParams
-    from lidarmap.mesh import MeshParams
-    from lidarmap.pipeline import PipelineConfig, RunParams, check_stage_names
-    from lidarmap.prep import PrepParams
     from lidarmap.segment.predict import PredictParams
-    from lidarmap.voxel import VoxelParams
 
     tables = {cls.section for cls in (RunParams, PrepParams, PredictParams, DensifyParams, FlattenParams,
                                       VoxelParams, MeshParams)}
@@ -359,9 +370,9 @@ def _pipeline_config(config: Path | None, *, stages: str | None, method: str | N
 def run_with_progress(tiles: list[Path], footprints: Path, out_dir: Path, pipeline_config: Any,
                       crs: str | None) -> Any:
     """``run_pipeline`` with a progress bar per step (shared with ``lidarmap demo``)."""
+    from lidarmap.aerial.pipeline import check_out_dir, run_pipeline
     from lidarmap.io.footprints import read_footprints
-    from lidarmap.pipeline import check_out_dir, run_pipeline
-    from lidarmap.prep import scan_tiles
+    from lidarmap.io.tiles import scan_tiles
 
     check_out_dir(out_dir)
     fps = read_footprints(footprints, id_field=pipeline_config.prep.id_field)

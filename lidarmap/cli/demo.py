@@ -20,7 +20,14 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from lidarmap.cli.common import ConfigOption, SeedOption, handle_errors, params_from, progress, table_console
+from lidarmap.cli.common import (
+    ConfigOption,
+    SeedOption,
+    handle_errors,
+    params_from,
+    progress,
+    table_console,
+)
 from lidarmap.errors import InputError
 
 #: A file that marks a folder as a demo output, so a later demo may replace it (and nothing else).
@@ -91,7 +98,11 @@ def _simulate(city: Path, params: Any) -> Any:
 
 
 def _aerial(out: Path, truth: Any, config: Path | None, seed: int) -> None:
-    from lidarmap.cli.aerial import _pipeline_config, print_run_summary, run_with_progress
+    from lidarmap.cli.aerial import (
+        _pipeline_config,
+        print_run_summary,
+        run_with_progress,
+    )
 
     city = truth.root
     cfg = _pipeline_config(config, stages=None, method=None, model=None, union=None, voxel_size=None, mesh=None,
@@ -103,13 +114,13 @@ def _aerial(out: Path, truth: Any, config: Path | None, seed: int) -> None:
 
 def _aerial_scores(run_dir: Path, truth: Any, result: Any, cfg: Any) -> None:
     """Segmentation OA / building IoU and voxel IoU against the truth, next to the delivered labels / naive voxels."""
-    from lidarmap.aerial_eval import score_building_voxels
+    from lidarmap.aerial.eval import score_building_voxels
+    from lidarmap.aerial.pipeline import load_segmenter
     from lidarmap.io.footprints import read_footprints
     from lidarmap.io.las import read_las
-    from lidarmap.pipeline import load_segmenter
+    from lidarmap.io.voxels import read_voxels
     from lidarmap.segment.metrics import evaluate_classes
     from lidarmap.segment.predict import apply_classes, predict
-    from lidarmap.voxel import read_voxels
 
     als = read_las(truth.als)
     true_classes = truth.labels("als").classification
@@ -141,10 +152,11 @@ def _aerial_scores(run_dir: Path, truth: Any, result: Any, cfg: Any) -> None:
 
 
 def _facade_map(out: Path, truth: Any, config: Path | None, seed: int) -> None:
-    from lidarmap.cli.facade_map import apply_campaign, campaign_inputs, load_map, stage_params
+    from lidarmap.cli.facade_map import load_map, stage_params
     from lidarmap.export.cityjson import map_to_cityjson, write_cityjson
     from lidarmap.export.render import render_map
-    from lidarmap.facade_eval import evaluate_facades, map_statistics
+    from lidarmap.facade.eval import evaluate_facades, map_statistics
+    from lidarmap.map.apply import apply_campaign, campaign_inputs
 
     map_path = out / "city.lmap"
     params = stage_params(config)

@@ -6,7 +6,7 @@ import importlib
 
 import typer
 
-from lidarmap import __version__
+from lidarmap._version import __version__
 
 app = typer.Typer(
     name="lidarmap",
@@ -43,7 +43,9 @@ def main() -> None:
     import os
     import sys
 
-    from typer._click import exceptions as click_exc  # typer vendors click; its errors live here
+    from typer._click import (
+        exceptions as click_exc,  # typer vendors click; its errors live here
+    )
 
     try:
         code = app(standalone_mode=False)  # returns the exit code of a typer.Exit raised inside a command

@@ -8,8 +8,16 @@ from typing import Optional
 import typer
 from rich.table import Table
 
-from lidarmap.cli.common import (ConfigOption, CrsOption, FootprintsOption, IdFieldOption, console, handle_errors,
-                                 params_from, progress)
+from lidarmap.cli.common import (
+    ConfigOption,
+    CrsOption,
+    FootprintsOption,
+    IdFieldOption,
+    console,
+    handle_errors,
+    params_from,
+    progress,
+)
 
 
 def register(app: typer.Typer) -> None:
@@ -36,9 +44,12 @@ def prep_command(
     config: Optional[Path] = ConfigOption,
 ) -> None:
     """Split tiles into buildings: buildings/<id>.laz, buildings.csv (index), frame.json, prep.json."""
+    from lidarmap.aerial.pipeline import prep_tiles
+    from lidarmap.aerial.prep import PrepParams
     from lidarmap.io.crs import parse_crs
     from lidarmap.io.footprints import read_footprints
-    from lidarmap.prep import PrepParams, check_out_dir, prep_tiles, scan_tiles, write_prep
+    from lidarmap.io.prepdir import check_out_dir, write_prep
+    from lidarmap.io.tiles import scan_tiles
 
     params = params_from(PrepParams, config, buffer=buffer, id_field=id_field, status_field=status_field,
                          min_height=min_height, rotation_deg=rotation)

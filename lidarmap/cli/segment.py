@@ -14,7 +14,15 @@ from typing import Any, Optional
 import typer
 from rich.table import Table
 
-from lidarmap.cli.common import ConfigOption, CrsOption, SeedOption, console, handle_errors, params_from, progress
+from lidarmap.cli.common import (
+    ConfigOption,
+    CrsOption,
+    SeedOption,
+    console,
+    handle_errors,
+    params_from,
+    progress,
+)
 from lidarmap.errors import ConfigError, InputError
 
 segment_app = typer.Typer(name="segment", no_args_is_help=True, add_completion=False,
@@ -52,9 +60,9 @@ class Input:
 
 def read_input(path: Path, crs: str | None) -> Input:
     """Read a LAS/LAZ file, or every building of a prep folder as one cloud."""
+    from lidarmap.core import PointCloud
     from lidarmap.io.las import read_las
-    from lidarmap.io.pointcloud import PointCloud
-    from lidarmap.prep import read_prep_index
+    from lidarmap.io.prepdir import read_prep_index
 
     if not path.is_dir():
         return Input(path, read_las(path, crs=crs))
@@ -184,7 +192,7 @@ def predict_command(
 
 def _prep_parts(path: Path) -> list[tuple[Path, int]] | None:
     """The building files of a prep folder (counts from its index), None for a file."""
-    from lidarmap.prep import read_prep_index
+    from lidarmap.io.prepdir import read_prep_index
 
     if not path.is_dir():
         return None

@@ -8,7 +8,14 @@ from typing import Optional
 import typer
 from rich.table import Table
 
-from lidarmap.cli.common import ConfigOption, SeedOption, console, handle_errors, params_from, progress
+from lidarmap.cli.common import (
+    ConfigOption,
+    SeedOption,
+    console,
+    handle_errors,
+    params_from,
+    progress,
+)
 
 
 def register(app: typer.Typer) -> None:
@@ -27,7 +34,10 @@ def simulate_command(
     config: Optional[Path] = ConfigOption,
 ) -> None:
     """Simulate a city (aerial als.laz, mobile mls_<i>.laz + trajectory_<i>.csv, footprints.geojson, truth/)."""
-    from lidarmap.sim import SimParams, simulate  # imported here: keeps `lidarmap --help` fast
+    from lidarmap.sim import (  # imported here: keeps `lidarmap --help` fast
+        SimParams,
+        simulate,
+    )
 
     params = params_from(SimParams, config, seed=seed, buildings=buildings, campaigns=campaigns)
     with progress() as bar:

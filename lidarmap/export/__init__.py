@@ -1,7 +1,7 @@
 """Exports of the building map: CityJSON 2.0 (:mod:`.cityjson`, checked by :mod:`.validate`), façade images
 (:mod:`.render`) and counts (:mod:`.summary`).
 
-All take a :class:`lidarmap.model.BuildingMap` (``MapStore.load()``) and never touch the store. The renderer
+All take a :class:`lidarmap.map.model.BuildingMap` (``MapStore.load()``) and never touch the store. The renderer
 (matplotlib) is imported only by ``lidarmap.export.render``.
 """
 

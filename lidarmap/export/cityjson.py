@@ -45,8 +45,9 @@ from shapely.geometry import Polygon, box
 from shapely.geometry.polygon import orient
 
 from lidarmap.export.summary import COUNT_KEYS, count_buildings
+from lidarmap.facade.model import Element, ElementKind, Facade
 from lidarmap.io.atomic import atomic_path, write_text_atomic
-from lidarmap.model import Building, BuildingMap, Element, ElementKind, Facade
+from lidarmap.map.model import Building, BuildingMap
 
 __all__ = ["CITYJSON_VERSION", "SCALE", "map_to_cityjson", "write_cityjson", "reference_system",
            "HEIGHT_ATTRIBUTES", "GROUND_ATTRIBUTES", "AerialBuilding", "write_aerial_cityjson"]

@@ -26,8 +26,9 @@ from matplotlib.patches import Patch, PathPatch
 from matplotlib.path import Path as MplPath
 from shapely.geometry import Polygon
 
+from lidarmap.facade.model import ElementKind, Facade
 from lidarmap.io.atomic import atomic_path
-from lidarmap.model import BuildingMap, ElementKind, Facade
+from lidarmap.map.model import BuildingMap
 
 __all__ = ["render_facade", "render_map", "facade_image_size", "facade_filename", "MAIN_COLOUR", "STRUCTURE_COLOUR",
            "LAYER_COLOURS", "WINDOW_COLOUR", "UNKNOWN_COLOUR", "UNOBSERVED_COLOUR"]

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from lidarmap.model import Building, BuildingMap, Element, ElementKind
+from lidarmap.facade.model import Element, ElementKind
+from lidarmap.map.model import Building, BuildingMap
 
 __all__ = ["COUNT_KEYS", "element_class", "count_buildings", "count_map"]
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import re
 from pathlib import Path
@@ -10,55 +9,14 @@ from typing import Any
 
 import numpy as np
 import shapely
-from pyproj import CRS, Transformer
+from pyproj import CRS
 from shapely.geometry import MultiPolygon, Polygon, mapping, shape
 
+from lidarmap.core import Footprints
 from lidarmap.errors import CRSError, InputError
 from lidarmap.io.atomic import write_text_atomic
-from lidarmap.io.crs import horizontal_crs, same_crs
 
 WGS84 = CRS.from_epsg(4326)
-
-
-@dataclasses.dataclass
-class Footprints:
-    """Footprint polygons (shapely, in ``crs``) with their ids and original properties."""
-
-    ids: list[str]
-    polygons: np.ndarray  # object array of shapely Polygon/MultiPolygon
-    properties: list[dict[str, Any]]
-    crs: CRS
-    source: str | None = None
-
-    def __len__(self) -> int:
-        return len(self.ids)
-
-    @property
-    def bounds(self) -> tuple[float, float, float, float]:
-        return tuple(shapely.total_bounds(self.polygons))  # type: ignore[return-value]
-
-    def subset(self, index: np.ndarray) -> "Footprints":
-        index = np.asarray(index)
-        if index.dtype == bool:
-            index = np.flatnonzero(index)
-        return Footprints([self.ids[i] for i in index], self.polygons[index],
-                          [self.properties[i] for i in index], self.crs, self.source)
-
-    def to_crs(self, crs: CRS) -> "Footprints":
-        """The same footprints reprojected to ``crs`` (2D, always x=easting/lon, y=northing/lat)."""
-        target = horizontal_crs(crs)
-        if same_crs(self.crs, target):
-            return self
-        transformer = Transformer.from_crs(self.crs, target, always_xy=True)
-
-        def project(coords: np.ndarray) -> np.ndarray:
-            x, y = transformer.transform(coords[:, 0], coords[:, 1])
-            return np.column_stack([x, y])
-
-        polygons = shapely.transform(self.polygons, project)
-        if not np.all(np.isfinite(shapely.total_bounds(polygons))):
-            raise CRSError(f"footprints cannot be reprojected to {target.name!r}", self.source)
-        return Footprints(self.ids, polygons, self.properties, target, self.source)
 
 
 def _legacy_crs(doc: dict[str, Any], path: Path) -> CRS | None:

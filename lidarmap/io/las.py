@@ -5,18 +5,18 @@ Every failure to read becomes an :class:`~lidarmap.errors.InputError` naming the
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 import struct
+from collections.abc import Iterator
 from pathlib import Path
 
 import laspy
 import numpy as np
 from pyproj import CRS
 
+from lidarmap.core import STANDARD_ATTRS, PointCloud
 from lidarmap.errors import CRSError, InputError
 from lidarmap.io.atomic import atomic_path
 from lidarmap.io.crs import parse_crs, same_crs
-from lidarmap.io.pointcloud import STANDARD_ATTRS, PointCloud
 
 #: Default number of points per chunk when streaming.
 CHUNK_POINTS = 2_000_000

@@ -3,60 +3,17 @@
 from __future__ import annotations
 
 import csv
-import dataclasses
 import io
 from pathlib import Path
 
 import numpy as np
 
+from lidarmap.core import Trajectory
 from lidarmap.errors import InputError
 from lidarmap.io.atomic import write_text_atomic
 
 REQUIRED = ("time", "x", "y", "z")
 ANGLES = ("roll", "pitch", "yaw")
-
-
-@dataclasses.dataclass
-class Trajectory:
-    """Sensor positions (CRS) over GPS time; ``rpy`` are roll, pitch, yaw in radians when known."""
-
-    time: np.ndarray
-    xyz: np.ndarray
-    rpy: np.ndarray | None = None
-    source: str | None = None
-
-    def __post_init__(self) -> None:
-        self.time = np.asarray(self.time, dtype=np.float64)
-        self.xyz = np.asarray(self.xyz, dtype=np.float64).reshape(-1, 3)
-        if self.rpy is not None:
-            self.rpy = np.asarray(self.rpy, dtype=np.float64).reshape(-1, 3)
-
-    def __len__(self) -> int:
-        return len(self.time)
-
-    def position_at(self, t: np.ndarray, tolerance: float = 0.05) -> np.ndarray:
-        """Sensor positions (M, 3) at GPS times ``t`` by linear interpolation.
-
-        Times more than ``tolerance`` seconds outside the trajectory are an error: extrapolating a vehicle's path
-        would silently put the sensor in the wrong place.
-        """
-        t = np.asarray(t, dtype=np.float64)
-        if t.size:
-            self.check_covers(float(t.min()), float(t.max()), self.count_outside(t, tolerance))
-        return np.column_stack([np.interp(t, self.time, self.xyz[:, k]) for k in range(3)])
-
-    def count_outside(self, t: np.ndarray, tolerance: float = 0.05) -> int:
-        """How many of the times ``t`` lie more than ``tolerance`` seconds outside the trajectory."""
-        t = np.asarray(t, dtype=np.float64)
-        return int(np.count_nonzero((t < self.time[0] - tolerance) | (t > self.time[-1] + tolerance)))
-
-    def check_covers(self, t_min: float, t_max: float, outside: int) -> None:
-        """Refuse point times in [t_min, t_max] of which ``outside`` lie outside the trajectory (InputError naming
-        the trajectory file); a streamed campaign counts them chunk by chunk and calls this once."""
-        if outside:
-            raise InputError(
-                f"{outside} point time(s) in [{t_min:.3f}, {t_max:.3f}] lie outside the trajectory's "
-                f"[{self.time[0]:.3f}, {self.time[-1]:.3f}]", self.source)
 
 
 def read_trajectory(path: str | Path) -> Trajectory:

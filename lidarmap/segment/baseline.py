@@ -23,12 +23,19 @@ import joblib
 import numpy as np
 from sklearn.ensemble import HistGradientBoostingClassifier
 
+from lidarmap.core import PointCloud
 from lidarmap.errors import InputError
 from lidarmap.io.atomic import atomic_path
-from lidarmap.io.pointcloud import PointCloud
-from lidarmap.segment.blocks import IGNORE, binary_labels, hide_labels
-from lidarmap.segment.features import (EIGEN_NAMES, FeatureSpec, ModelSpecError, PointFeatures, check_spec,
-                                       eigen_features, point_features)
+from lidarmap.segment.blocks import IGNORE, binary_labels, class_weights, hide_labels
+from lidarmap.segment.features import (
+    EIGEN_NAMES,
+    FeatureSpec,
+    ModelSpecError,
+    PointFeatures,
+    check_spec,
+    eigen_features,
+    point_features,
+)
 from lidarmap.segment.modelfile import MODELS_DIR
 
 FORMAT = "lidarmap-segment-baseline"
@@ -127,7 +134,6 @@ def train_baseline(clouds: list[tuple[str, PointCloud]], params: BaselineParams 
     ``params.max_samples`` points are drawn (seeded) from all labelled points: uniformly, or with cloud i giving
     a share ``source_weights[i]`` (normalised) of them, as the network draws its blocks.
     """
-    from lidarmap.segment.train import class_weights
 
     started = time.perf_counter()
     rng = np.random.default_rng(params.seed)

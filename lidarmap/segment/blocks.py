@@ -13,9 +13,16 @@ import dataclasses
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lidarmap.io.pointcloud import PointCloud
-from lidarmap.segment.features import (BUILDING_CLASS, UNLABELLED_CLASSES, FeatureSpec, PointFeatures, Transform,
-                                       block_input)
+from lidarmap.core import PointCloud
+from lidarmap.errors import InputError
+from lidarmap.segment.features import (
+    BUILDING_CLASS,
+    UNLABELLED_CLASSES,
+    FeatureSpec,
+    PointFeatures,
+    Transform,
+    block_input,
+)
 
 IGNORE = -1  # label of points excluded from the loss (unclassified)
 
@@ -114,3 +121,18 @@ def spatial_split(xy: np.ndarray, cell: float, val_fraction: float,
     chosen = np.zeros(len(keys), bool)
     chosen[rng.permutation(len(keys))[:n_val]] = True
     return chosen[inverse.ravel()]
+
+
+def class_weights(labels: np.ndarray, num_classes: int = 2) -> np.ndarray:
+    """Paper eq. (1): w_j = (max f / f_j)^(1/3), normalised to sum 1; f_j = relative frequency of class j.
+
+    ``labels`` may contain :data:`IGNORE`, which is not counted. A class without any point is an error.
+    """
+    counts = np.bincount(labels[labels != IGNORE], minlength=num_classes)[:num_classes].astype(np.float64)
+    if np.any(counts == 0):
+        missing = ", ".join(str(j) for j in np.flatnonzero(counts == 0))
+        raise InputError(f"training data has no labelled points of class(es) {missing} (0 = not-building, "
+                         "1 = building): both are needed")
+    freq = counts / counts.sum()
+    raw = (freq.max() / freq) ** (1.0 / 3.0)
+    return raw / raw.sum()

@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from lidarmap.core import PointCloud
 from lidarmap.errors import LidarmapError
 from lidarmap.frame import LocalFrame
-from lidarmap.io.pointcloud import PointCloud
 from lidarmap.segment.ground import GroundGrid, estimate_ground, ground_from_points
 
 #: Bumped whenever the meaning of a channel changes; models made with another version are refused.

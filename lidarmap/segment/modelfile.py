@@ -21,10 +21,11 @@ from lidarmap.io.torchfile import read_torch_file
 from lidarmap.segment.features import FeatureSpec, ModelSpecError, check_spec
 from lidarmap.segment.metrics import CLASS_NAMES
 from lidarmap.segment.pointnet2 import Arch, PointNet2Seg
+from lidarmap.weights import WEIGHTS_DIR
 
 FORMAT = "lidarmap-segment-pointnet2"
 FORMAT_VERSION = 1
-MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
+MODELS_DIR = WEIGHTS_DIR
 DEFAULT_MODEL = MODELS_DIR / "segment_pointnet2.pt"
 
 #: How block coordinates relate to the CRS (stored so that other tools can reproduce the input exactly).

@@ -20,9 +20,15 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from lidarmap.io.pointcloud import PointCloud
+from lidarmap.core import PointCloud
 from lidarmap.segment.blocks import column_members, sample_indices, window_centres
-from lidarmap.segment.features import BUILDING_CLASS, PointFeatures, Transform, block_input, point_features
+from lidarmap.segment.features import (
+    BUILDING_CLASS,
+    PointFeatures,
+    Transform,
+    block_input,
+    point_features,
+)
 from lidarmap.segment.modelfile import SegmentModel
 
 #: Class given to input building points that the model calls not-building (they are no longer trusted as 6).

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidarmap.io.pointcloud import PointCloud
+from lidarmap.core import PointCloud
 from lidarmap.segment.features import UNLABELLED_CLASSES
 from lidarmap.segment.pointnet2 import Arch
 from lidarmap.segment.train import TrainParams
@@ -53,7 +53,9 @@ class RecipeData:
 
 
 def read(relative: str, data_dir: Path = DATA_DIR) -> PointCloud:
-    from lidarmap.io.las import read_las  # here: the recipe's constants need no LAS reader
+    from lidarmap.io.las import (
+        read_las,  # here: the recipe's constants need no LAS reader
+    )
 
     return read_las(data_dir / relative, crs=CRS.get(relative))
 

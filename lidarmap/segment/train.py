@@ -13,15 +13,28 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
+from lidarmap.core import PointCloud
 from lidarmap.errors import InputError
-from lidarmap.io.pointcloud import PointCloud
-from lidarmap.segment.blocks import (IGNORE, TrainingSource, binary_labels, hide_labels, make_source,
-                                     spatial_split, training_block)
+from lidarmap.segment.blocks import (
+    IGNORE,
+    TrainingSource,
+    binary_labels,
+    class_weights,
+    hide_labels,
+    make_source,
+    spatial_split,
+    training_block,
+)
 from lidarmap.segment.features import FeatureSpec, Transform, point_features
 from lidarmap.segment.metrics import confusion_matrix, scores
 from lidarmap.segment.modelfile import SegmentModel
 from lidarmap.segment.pointnet2 import Arch, PointNet2Seg
-from lidarmap.segment.predict import PredictParams, pick_device, predict_pointnet2, torch_threads
+from lidarmap.segment.predict import (
+    PredictParams,
+    pick_device,
+    predict_pointnet2,
+    torch_threads,
+)
 
 #: Area cells (m) used to measure how much ground the training data covers (for the automatic epoch size).
 AREA_CELL = 4.0
@@ -108,21 +121,6 @@ class TrainParams:
 class TrainResult:
     model: SegmentModel
     history: list[dict[str, Any]]
-
-
-def class_weights(labels: np.ndarray, num_classes: int = 2) -> np.ndarray:
-    """Paper eq. (1): w_j = (max f / f_j)^(1/3), normalised to sum 1; f_j = relative frequency of class j.
-
-    ``labels`` may contain :data:`IGNORE`, which is not counted. A class without any point is an error.
-    """
-    counts = np.bincount(labels[labels != IGNORE], minlength=num_classes)[:num_classes].astype(np.float64)
-    if np.any(counts == 0):
-        missing = ", ".join(str(j) for j in np.flatnonzero(counts == 0))
-        raise InputError(f"training data has no labelled points of class(es) {missing} (0 = not-building, "
-                         "1 = building): both are needed")
-    freq = counts / counts.sum()
-    raw = (freq.max() / freq) ** (1.0 / 3.0)
-    return raw / raw.sum()
 
 
 def augmentation(params: TrainParams, rng: np.random.Generator) -> Transform:

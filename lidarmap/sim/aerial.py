@@ -8,10 +8,16 @@ import dataclasses
 import numpy as np
 
 from lidarmap.sim.city import Car, City
-from lidarmap.sim.mesh import CLASS_BUILDING, CLASS_GROUND, CLASS_OTHER, CLASS_VEGETATION, KIND
+from lidarmap.sim.mesh import (
+    CLASS_BUILDING,
+    CLASS_GROUND,
+    CLASS_OTHER,
+    CLASS_VEGETATION,
+    KIND,
+)
+from lidarmap.sim.params import SimParams
 from lidarmap.sim.raycast import Tracer
 from lidarmap.sim.scan import Scan, optics
-from lidarmap.sim.params import SimParams
 
 RUN_IN = 20.0  # metres flown before and after the scene on each strip
 TURN_TIME = 90.0  # seconds between strips

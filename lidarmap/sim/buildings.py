@@ -12,8 +12,17 @@ import dataclasses
 import numpy as np
 from shapely.geometry import LineString, Polygon
 
-from lidarmap.model import FacadeFrame
-from lidarmap.sim.mesh import (ABSORBER, CLASS_BUILDING, KIND, Labels, Soup, boxes, holed_rectangle, quads)
+from lidarmap.facade.model import FacadeFrame
+from lidarmap.sim.mesh import (
+    ABSORBER,
+    CLASS_BUILDING,
+    KIND,
+    Labels,
+    Soup,
+    boxes,
+    holed_rectangle,
+    quads,
+)
 from lidarmap.sim.terrain import Terrain
 
 UP = np.array([0.0, 0.0, 1.0])

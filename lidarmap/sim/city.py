@@ -15,10 +15,29 @@ from pyproj import CRS
 from shapely.geometry import Point
 
 from lidarmap.frame import LocalFrame
-from lidarmap.sim.buildings import (Building, Style, add_elements, building_soup, footprint_ring, make_building,
-                                    make_facades, make_shell, row_to_local)
-from lidarmap.sim.mesh import (CLASS_OTHER, CLASS_VEGETATION, KIND, LEAF, Labels, SceneMesh, Soup, boxes, prism,
-                               rotate_z)
+from lidarmap.sim.buildings import (
+    Building,
+    Style,
+    add_elements,
+    building_soup,
+    footprint_ring,
+    make_building,
+    make_facades,
+    make_shell,
+    row_to_local,
+)
+from lidarmap.sim.mesh import (
+    CLASS_OTHER,
+    CLASS_VEGETATION,
+    KIND,
+    LEAF,
+    Labels,
+    SceneMesh,
+    Soup,
+    boxes,
+    prism,
+    rotate_z,
+)
 from lidarmap.sim.params import SimParams
 from lidarmap.sim.terrain import Terrain
 

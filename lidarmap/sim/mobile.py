@@ -17,7 +17,12 @@ from collections.abc import Callable
 import numpy as np
 
 from lidarmap.sim.city import LANE_CENTRE, City
-from lidarmap.sim.mesh import CLASS_BUILDING, CLASS_GROUND, CLASS_OTHER, CLASS_VEGETATION
+from lidarmap.sim.mesh import (
+    CLASS_BUILDING,
+    CLASS_GROUND,
+    CLASS_OTHER,
+    CLASS_VEGETATION,
+)
 from lidarmap.sim.params import SimParams
 from lidarmap.sim.raycast import Tracer
 from lidarmap.sim.scan import Scan, optics

@@ -6,8 +6,8 @@ import dataclasses
 
 import numpy as np
 
+from lidarmap.core import PointCloud
 from lidarmap.frame import LocalFrame
-from lidarmap.io.pointcloud import PointCloud
 from lidarmap.sim.mesh import LABEL_FIELDS
 from lidarmap.sim.raycast import Returns, Tracer
 

@@ -12,21 +12,27 @@ from pathlib import Path
 import numpy as np
 from shapely.geometry import Polygon
 
+from lidarmap.core import Trajectory
 from lidarmap.errors import InputError
 from lidarmap.io.footprints import write_geojson_wgs84
 from lidarmap.io.las import write_las
-from lidarmap.io.trajectory import Trajectory, write_trajectory
 from lidarmap.io.npz import write_npz
-from lidarmap.mesh import write_ply_arrays
+from lidarmap.io.trajectory import write_trajectory
 from lidarmap.sim.aerial import scan_aerial
 from lidarmap.sim.buildings import solid_triangles
 from lidarmap.sim.city import Car, City, build_city
 from lidarmap.sim.mesh import KINDS
-from lidarmap.sim.mobile import Campaign, plan_campaign, profile_plane_normals, scan_campaign, sensor_path
+from lidarmap.sim.mobile import (
+    Campaign,
+    plan_campaign,
+    profile_plane_normals,
+    scan_campaign,
+    sensor_path,
+)
 from lidarmap.sim.params import SimParams
 from lidarmap.sim.raycast import Tracer
 from lidarmap.sim.scan import Scan
-from lidarmap.sim.truth import FORMAT, VERSION, solid_mesh, write_json
+from lidarmap.sim.truth import FORMAT, VERSION, save_ply, solid_mesh, write_json
 from lidarmap.sim.visibility import HitGrids, seen_grid, visible_fraction
 
 #: ``progress(task, completed, total)`` is called as work advances (task: "city", "aerial", "mobile <i>", "truth").
@@ -190,9 +196,9 @@ def _write_footprints(city: City, path: Path) -> Path:
 def _write_meshes(city: City, folder: Path) -> None:
     for b in city.buildings:
         mesh = solid_mesh(solid_triangles(b), city.frame)
-        write_ply_arrays(folder / f"building_{b.id}.ply", mesh.vertices, mesh.faces, comment=TRUTH_PLY_COMMENT)
+        save_ply(folder / f"building_{b.id}.ply", mesh.vertices, mesh.faces, TRUTH_PLY_COMMENT)
     verts, faces = city.terrain.mesh()
-    write_ply_arrays(folder / "terrain.ply", city.frame.to_crs(verts), faces, comment=TRUTH_PLY_COMMENT)
+    save_ply(folder / "terrain.ply", city.frame.to_crs(verts), faces, TRUTH_PLY_COMMENT)
 
 
 # --- scene.json --------------------------------------------------------------------------------------------------

@@ -16,9 +16,9 @@ from pyproj import CRS
 from shapely.geometry import Polygon, box
 
 from lidarmap.errors import InputError
+from lidarmap.facade.model import FacadeFrame
 from lidarmap.frame import LocalFrame
 from lidarmap.io.atomic import write_text_atomic
-from lidarmap.model import FacadeFrame
 from lidarmap.sim.mesh import KINDS
 from lidarmap.sim.terrain import Terrain
 
@@ -219,8 +219,24 @@ class SimTruth:
         return load_ply(self.root / "truth" / "meshes" / "terrain.ply")
 
 
+def save_ply(path: Path, vertices: np.ndarray, faces: np.ndarray, comment: str) -> None:
+    """Write a truth mesh: binary PLY, ``double`` vertices (CRS coordinates), triangles.
+
+    The simulator keeps its own writer (the inverse of :func:`load_ply`) so that the truth never depends on the
+    production code it judges.
+    """
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    vertices = np.asarray(vertices, dtype="<f8").reshape(-1, 3)
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment {comment}\nelement vertex {len(vertices)}\n"
+              "property double x\nproperty double y\nproperty double z\n"
+              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    rows = np.empty(len(faces), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
+    rows["n"], rows["idx"] = 3, faces
+    Path(path).write_bytes(header.encode("ascii") + vertices.tobytes() + rows.tobytes())
+
+
 def load_ply(path: Path) -> trimesh.Trimesh:
-    """Read a PLY written by :func:`lidarmap.mesh.write_ply_arrays` (float64 vertices kept)."""
+    """Read a truth mesh written by :func:`save_ply` (float64 vertices kept)."""
     data = Path(path).read_bytes()
     end = data.index(b"end_header\n") + len(b"end_header\n")
     header = data[:end].decode("ascii").splitlines()

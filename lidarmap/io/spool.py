@@ -9,7 +9,7 @@ memory (small inputs, tests).
 
 The columns are those given to the first :meth:`ColumnSpool.add`; a later add must give the same names with
 castable values (:meth:`add` casts to the first dtypes). ``columns`` of a point cloud differ between tiles: the
-caller normalises them (see :func:`lidarmap.prep.chunk_columns`).
+caller normalises them (see :func:`lidarmap.aerial.prep.chunk_columns`).
 """
 
 from __future__ import annotations

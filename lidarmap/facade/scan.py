@@ -1,14 +1,14 @@
 """What façade work needs to know about a whole mobile campaign, gathered in two passes over its points.
 
-Façade work looks at one building's surroundings (:mod:`lidarmap.map_update`), but some of its inputs belong to the
+Façade work looks at one building's surroundings (:mod:`lidarmap.map.update`), but some of its inputs belong to the
 whole campaign and must not change with the part of it a building sees, the chunk size or the worker:
 
 * which points are ground and which are building candidates (:class:`PointClasses`): the ASPRS classes when the
   campaign holds them anywhere (one chunk or one street without class 2 must not switch rules), else the height
   rule over the lowest point of every ``ground_cell`` cell of a lattice anchored at the campaign's origin
-  (:class:`~lidarmap.facade_planes.LowestCells`);
+  (:class:`~lidarmap.facade.observe.observe.planes.LowestCells`);
 * the GPS time span of the non-ground points (the trajectory must cover it; the reach track is sampled over it);
-* the scanner's reach limits (:func:`~lidarmap.facade_occlusion.reach_limits`), measured on every k-th non-ground
+* the scanner's reach limits (:func:`~lidarmap.facade.observe.observe.occlusion.reach_limits`), measured on every k-th non-ground
   point of the file (k = points // ``REACH_SAMPLE``): a stride sample depends on the file alone, where a random one
   would depend on how the points arrive.
 
@@ -23,11 +23,10 @@ import dataclasses
 
 import numpy as np
 
+from lidarmap.core import PointCloud, Trajectory
 from lidarmap.errors import InputError
-from lidarmap.facade_occlusion import reach_limits
-from lidarmap.facade_planes import LowestCells
-from lidarmap.io.pointcloud import PointCloud
-from lidarmap.io.trajectory import Trajectory
+from lidarmap.facade.occlusion import reach_limits
+from lidarmap.facade.planes import LowestCells
 
 __all__ = ["REACH_SAMPLE", "PointClasses", "CampaignScan", "CampaignStats", "StatsPass"]
 

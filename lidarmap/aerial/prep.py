@@ -26,14 +26,10 @@ non-excluded footprint, all attributes, about 60-80 bytes each) plus the ground 
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
-import json
 import math
-import re
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -42,21 +38,15 @@ import shapely
 from pyproj import CRS
 from shapely.geometry.base import BaseGeometry
 
-from lidarmap.errors import ConfigError, CRSError, InputError
+from lidarmap.core import Footprints, PointCloud
+from lidarmap.errors import ConfigError
 from lidarmap.frame import LocalFrame
-from lidarmap.io.atomic import atomic_dir, write_text_atomic
-from lidarmap.io.crs import describe_crs, same_crs
-from lidarmap.io.footprints import Footprints, check_overlap
-from lidarmap.io.las import iter_las, read_header, resolve_crs, write_las
-from lidarmap.io.pointcloud import PointCloud
+from lidarmap.io.crs import same_crs
+from lidarmap.io.footprints import check_overlap
 
-__all__ = [
-    "PrepParams", "BuildingPoints", "PrepSummary", "PrepResult", "TileSet", "FootprintIndex",
-    "DEFAULT_EXCLUDED_STATUSES",
-    "assign_points", "split_buildings", "prep_cloud", "scan_tiles", "prep_tiles", "write_prep", "read_prep_index",
-    "check_out_dir", "building_file_name", "stream_tiles", "SpooledPrep", "BuildingEntry", "canonical_order",
-    "chunk_columns",
-]
+__all__ = ["PrepParams", "BuildingPoints", "PrepSummary", "PrepResult", "FootprintIndex", "DEFAULT_EXCLUDED_STATUSES",
+           "assign_points", "split_buildings", "prep_cloud", "SpooledPrep", "BuildingEntry", "canonical_order",
+           "chunk_columns"]
 
 #: Status values (compared case-insensitively, whitespace collapsed) that mark a footprint as not built yet.
 DEFAULT_EXCLUDED_STATUSES: tuple[str, ...] = (
@@ -482,11 +472,11 @@ def chunk_columns(chunk: PointCloud) -> dict[str, np.ndarray]:
 
 class _Accumulator:
     """Collects, chunk after chunk, the points kept for each footprint and the ground points near them, in two
-    :class:`~lidarmap.spool.ColumnSpool` keyed by footprint (on disk under ``work_dir`` when given, so memory holds
+    :class:`~lidarmap.io.spool.ColumnSpool` keyed by footprint (on disk under ``work_dir`` when given, so memory holds
     one chunk and one spool buffer whatever the input size)."""
 
     def __init__(self, footprints: Footprints, params: PrepParams, work_dir: Path | None = None):
-        from lidarmap.spool import ColumnSpool
+        from lidarmap.io.spool import ColumnSpool
 
         self.footprints = footprints
         self.params = params
@@ -730,217 +720,36 @@ def split_buildings(cloud: PointCloud, footprints: Footprints, params: PrepParam
 # ----------------------------------------------------------------------------------------------------------------
 
 
-@dataclasses.dataclass
-class TileSet:
-    """What the tile headers say: their common CRS, joint 2D bounds and total point count."""
-
-    paths: list[Path]
-    crs: CRS
-    bounds: tuple[float, float, float, float]
-    points: int
-
-    @property
-    def name(self) -> str:
-        if len(self.paths) == 1:
-            return str(self.paths[0])
-        return f"{len(self.paths)} tiles ({self.paths[0].name}, ...)"
-
-
-def scan_tiles(paths: Sequence[str | Path], crs: str | CRS | None = None) -> TileSet:
-    """Check the tiles' headers: readable, one CRS for all (the file's, or ``crs`` where a file has none).
-
-    A tile whose CRS differs from the first tile's is refused (tiles are not reprojected: vertical datums and
-    coordinate precision would change silently); a tile without CRS needs ``crs``.
-    """
-    if not paths:
-        raise InputError("no input tiles given")
-    tiles = [Path(p) for p in paths]
-    seen: dict[Path, Path] = {}
-    for tile in tiles:
-        key = tile.resolve()
-        if key in seen:
-            raise InputError(f"tile given twice (also as {seen[key]})", tile)
-        seen[key] = tile
-    common: CRS | None = None
-    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
-    total = 0
-    for tile in tiles:
-        header = read_header(tile)
-        try:
-            file_crs = header.parse_crs()
-        except Exception as exc:  # noqa: BLE001 - laspy/pyproj raise many kinds on broken CRS records
-            raise CRSError(f"unreadable CRS record ({' '.join(str(exc).split())[:160]})", tile) from None
-        tile_crs = resolve_crs(file_crs, crs, tile)
-        if tile_crs is None:
-            raise CRSError("no CRS record in the file; pass --crs (e.g. --crs EPSG:28992)", tile)
-        if common is None:
-            common = tile_crs
-        elif not same_crs(common, tile_crs):
-            raise CRSError(f"CRS {tile_crs.name!r} differs from {common.name!r} of {tiles[0].name}; all tiles "
-                           f"must share one CRS (reproject this tile first)", tile)
-        if header.point_count:
-            lo = np.minimum(lo, np.asarray(header.mins[:2], dtype=np.float64))
-            hi = np.maximum(hi, np.asarray(header.maxs[:2], dtype=np.float64))
-        total += int(header.point_count)
-    if not total:
-        raise InputError("the tiles hold no points", tiles[0])
-    return TileSet(tiles, common, (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])), total)
-
-
-def _prefetch(chunks: Iterator[PointCloud]) -> Iterator[PointCloud]:
-    """Decode the next chunk in a background thread while the current one is assigned (2 cores: ~1.5x)."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    sentinel = object()
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lidarmap-prep-read")
-    try:
-        future = pool.submit(next, chunks, sentinel)
-        while True:
-            chunk = future.result()
-            if chunk is sentinel:
-                return
-            future = pool.submit(next, chunks, sentinel)
-            yield chunk
-    finally:
-        pool.shutdown(wait=True)  # the pending read finishes before the files are closed
-        if hasattr(chunks, "close"):
-            chunks.close()
-
-
-def stream_tiles(paths: Sequence[str | Path], footprints: Footprints, params: PrepParams | None = None,
-                 crs: str | CRS | None = None, progress: Callable[[int], None] | None = None,
+def spool_chunks(chunks: Iterable[PointCloud], footprints: Footprints, crs: CRS | None,
+                 bounds: tuple[float, float, float, float], name: str, sources: Sequence[str],
+                 params: PrepParams | None = None, progress: Callable[[int], None] | None = None,
                  work_dir: str | Path | None = None) -> SpooledPrep:
-    """Stream any number of tiles (chunks of ``params.chunk_points``) into a spool of the points kept per footprint.
+    """Spool streamed point chunks (any number, any tiling) into the points kept per footprint.
 
-    With ``work_dir`` the spool lives on disk there (memory: a chunk and a spool buffer, whatever the input size);
-    without, in memory. ``crs`` is used for tiles without a CRS record; footprints in another CRS are reprojected to
-    the tiles'. ``progress`` is called with the number of points of every chunk read. Raises :class:`InputError` /
-    :class:`CRSError` naming the file for unreadable tiles, CRS conflicts and footprints that miss the points.
+    ``crs``/``bounds``/``name`` describe the whole input (the tiles' headers: :func:`lidarmap.io.tiles.scan_tiles`);
+    footprints in another CRS are reprojected to ``crs`` and refused when they miss ``bounds``. With ``work_dir`` the
+    spool lives on disk there (memory: a chunk and a spool buffer, whatever the input size); without, in memory.
+    ``progress`` is called with the number of points of every chunk.
     """
     params = params or PrepParams()
     clock = time.perf_counter()
-    tiles = scan_tiles(paths, crs)
-    footprints = _footprints_in(footprints, tiles.crs)
-    check_overlap(footprints, tiles.bounds, tiles.name)
+    footprints = _footprints_in(footprints, crs)
+    check_overlap(footprints, bounds, name)
     acc = _Accumulator(footprints, params, None if work_dir is None else Path(work_dir))
-
-    def chunks() -> Iterator[PointCloud]:
-        for tile in tiles.paths:
-            yield from iter_las(tile, chunk_size=params.chunk_points, crs=crs)
-
     try:
-        for chunk in _prefetch(chunks()):
+        for chunk in chunks:
             acc.add(chunk)
             if progress is not None:
                 progress(len(chunk))
-        return acc.finish(tiles.crs, [str(p) for p in tiles.paths], time.perf_counter() - clock)
+        return acc.finish(crs, list(sources), time.perf_counter() - clock)
     except BaseException:
         acc.points.close()
         acc.ground.close()
         raise
 
 
-def prep_tiles(paths: Sequence[str | Path], footprints: Footprints, params: PrepParams | None = None,
-               crs: str | CRS | None = None, progress: Callable[[int], None] | None = None) -> PrepResult:
-    """:func:`stream_tiles` in memory, every building loaded (see :class:`SpooledPrep` for bounded memory)."""
-    spooled = stream_tiles(paths, footprints, params, crs, progress)
-    try:
-        return spooled.materialise()
-    finally:
-        spooled.close()
-
-
 # ----------------------------------------------------------------------------------------------------------------
 # Output
 # ----------------------------------------------------------------------------------------------------------------
 
-INDEX_COLUMNS = ["id", "file", "points", "points_inside", "height", "height_source", "ground_z",
-                 "xmin", "ymin", "zmin", "xmax", "ymax", "zmax", "status"]
-_MARKER = "prep.json"
 
-
-def building_file_name(building_id: str, taken: set[str] | None = None) -> str:
-    """A safe file name ``<id>.laz`` (characters other than letters, digits, ``.-_`` become ``_``; unique)."""
-    stem = re.sub(r"[^A-Za-z0-9._-]", "_", str(building_id)).strip(".") or "building"
-    name, k = f"{stem}.laz", 1
-    while taken is not None and name.lower() in taken:
-        k += 1
-        name = f"{stem}_{k}.laz"
-    if taken is not None:
-        taken.add(name.lower())
-    return name
-
-
-def check_out_dir(out_dir: str | Path) -> Path:
-    """Refuse an output path that is a file or a non-empty folder other than an earlier prep output."""
-    out = Path(out_dir)
-    if out.exists():
-        if not out.is_dir():
-            raise InputError("output exists and is not a folder", out)
-        if any(out.iterdir()) and not (out / _MARKER).exists():
-            raise InputError("output folder is not empty and holds no earlier prep output; choose another -o", out)
-    return out
-
-
-def _fmt(value: float) -> str:
-    return f"{value:.3f}" if math.isfinite(value) else ""
-
-
-def write_prep(out_dir: str | Path, result: PrepResult,
-               progress: Callable[[int], None] | None = None) -> Path:
-    """Write ``buildings/<id>.laz`` (CRS coordinates), ``buildings.csv``, ``frame.json`` and ``prep.json``.
-
-    Everything goes to a temporary folder beside ``out_dir`` that is renamed onto it at the end, so an error never
-    leaves a half-written output. An earlier prep output at ``out_dir`` is replaced; any other non-empty folder is
-    refused.
-    """
-    out = check_out_dir(out_dir)
-    with atomic_dir(out) as tmp:
-        (tmp / "buildings").mkdir()
-        rows, taken = [], set()
-        for building in result.buildings:
-            name = building_file_name(building.id, taken)
-            write_las(tmp / "buildings" / name, building.cloud)
-            lo, hi = building.cloud.xyz.min(axis=0), building.cloud.xyz.max(axis=0)
-            rows.append([building.id, f"buildings/{name}", len(building), building.points_inside,
-                         _fmt(building.height), building.height_source, _fmt(building.ground_z),
-                         *(_fmt(v) for v in (lo[0], lo[1], lo[2], hi[0], hi[1], hi[2])), building.status or ""])
-            if progress is not None:
-                progress(1)
-        text = io.StringIO()
-        writer = csv.writer(text, lineterminator="\n")
-        writer.writerow(INDEX_COLUMNS)
-        writer.writerows(rows)
-        write_text_atomic(tmp / "buildings.csv", text.getvalue())
-        frame = json.loads(result.frame.to_json())
-        if result.crs is not None:
-            frame["crs"] = result.crs.to_wkt()
-        write_text_atomic(tmp / "frame.json", json.dumps(frame, indent=2))
-        summary = {
-            "tiles": result.sources, "footprints": result.footprint_source,
-            "crs": describe_crs(result.crs), "params": dataclasses.asdict(result.params),
-            "points_read": result.points_read, "points_kept": result.points_kept,
-            "footprint_count": result.footprints, "buildings": len(result.buildings),
-            "dropped": result.dropped, "seconds": round(result.seconds, 3),
-        }
-        write_text_atomic(tmp / _MARKER, json.dumps(summary, indent=2))
-    return out
-
-
-def read_prep_index(out_dir: str | Path) -> list[dict[str, Any]]:
-    """The rows of ``buildings.csv`` (numbers parsed; ``path`` is the building file's full path)."""
-    out = Path(out_dir)
-    index = out / "buildings.csv"
-    if not index.exists():
-        raise InputError("no buildings.csv: not a prep output folder", out)
-    rows = []
-    with index.open(encoding="utf-8", newline="") as fh:
-        for row in csv.DictReader(fh):
-            parsed: dict[str, Any] = dict(row)
-            for key in ("points", "points_inside"):
-                parsed[key] = int(row[key])
-            for key in ("height", "ground_z", "xmin", "ymin", "zmin", "xmax", "ymax", "zmax"):
-                parsed[key] = float(row[key]) if row[key] else float("nan")
-            parsed["path"] = out / row["file"]
-            rows.append(parsed)
-    return rows

@@ -8,9 +8,9 @@
 
 **Like with like.** Voxels made from points are a *surface shell*: a scanner only returns points from surfaces. So
 the default truth voxels are the truth mesh's *surface* voxels (every voxel the surface passes through, in the same
-half-open cells as :func:`lidarmap.voxel.voxelize` uses), without the faces no scanner sees: downward faces (the
+half-open cells as :func:`lidarmap.aerial.voxel.voxelize` uses), without the faces no scanner sees: downward faces (the
 floor of a solid) and, given ``ground``, everything below the terrain (the buried wall foot). Solids can be compared
-too: ``voxelize_mesh(..., solid=True)`` against :func:`lidarmap.voxel.fill_columns` of the voxels.
+too: ``voxelize_mesh(..., solid=True)`` against :func:`lidarmap.aerial.voxel.fill_columns` of the voxels.
 
 **Mesh distances.** Chamfer and Hausdorff distances are estimated from ``n_samples`` points spread uniformly (by
 area) over each surface, seeded; each sample's distance to the other mesh is exact (point-to-triangle). Chamfer is
@@ -159,7 +159,9 @@ def chamfer_hausdorff(a: trimesh.Trimesh | np.ndarray, b: trimesh.Trimesh, n_sam
     truth), and ``samples``. Points given as ``a``: a random ``n_samples`` of them (all if fewer) are measured
     against ``b``, and ``b``'s samples against all of them.
     """
-    from lidarmap.sim.distance import MeshDistance  # exact point-to-mesh distances (importing lidarmap.sim is slow)
+    from lidarmap.sim.distance import (
+        MeshDistance,  # exact point-to-mesh distances (importing lidarmap.sim is slow)
+    )
 
     rng = np.random.default_rng(seed)
     if isinstance(a, trimesh.Trimesh):
@@ -186,7 +188,7 @@ def score_building_voxels(voxel_grids: dict[str, Any], truth: Any, delivered: An
                           footprints: Any = None, buffer: float = 5.0) -> dict[str, dict[str, float]]:
     """Voxel scores of reconstructed buildings against the simulator's truth, and of the naive baseline.
 
-    voxel_grids: building id -> :class:`~lidarmap.voxel.VoxelGrid` (e.g. each ``voxels.npz`` of ``lidarmap run``).
+    voxel_grids: building id -> :class:`~lidarmap.core.VoxelGrid` (e.g. each ``voxels.npz`` of ``lidarmap run``).
     truth: a :class:`~lidarmap.sim.SimTruth`; every grid is compared with the surface voxels of its building's
     true mesh on the grid's own lattice (terrain and downward faces left out, as our voxels are a shell).
     delivered + footprints (optional): the aerial cloud as delivered (PointCloud with its partial classification)
@@ -194,8 +196,8 @@ def score_building_voxels(voxel_grids: dict[str, Any], truth: Any, delivered: An
     ``buffer``, as prep assigns them) are scored too, on the same lattice. Returns
     ``{id: {"iou", "precision", "recall", "naive_iou"?}}``.
     """
-    from lidarmap.prep import assign_points
-    from lidarmap.voxel import voxelize_naive
+    from lidarmap.aerial.prep import assign_points
+    from lidarmap.aerial.voxel import voxelize_naive
 
     owner = None
     if delivered is not None and footprints is not None:

@@ -16,10 +16,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy import ndimage
 
-from lidarmap.model import ElementKind
+from lidarmap.facade.model import ElementKind
 
 if TYPE_CHECKING:  # pragma: no cover
-    from lidarmap.facade import FacadeParams
+    from lidarmap.facade.params import FacadeParams
 
 HOLE, OCCLUDED, OBJECT = 1, 0, -1
 
@@ -43,13 +43,13 @@ def window_uncertainty_eq3(values: np.ndarray, rect: tuple[int, int, int, int]) 
     return (n_diff + n_obj) / n_hole
 
 
-def _integral(mask: np.ndarray) -> np.ndarray:
+def integral_image(mask: np.ndarray) -> np.ndarray:
     out = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), dtype=np.int64)
     out[1:, 1:] = np.cumsum(np.cumsum(mask, axis=0), axis=1)
     return out
 
 
-def _box_sums(integral: np.ndarray, r0, r1, c0, c1) -> np.ndarray:
+def box_sums(integral: np.ndarray, r0, r1, c0, c1) -> np.ndarray:
     return integral[r1, c1] - integral[r0, c1] - integral[r1, c0] + integral[r0, c0]
 
 
@@ -88,7 +88,7 @@ def fit_rectangle(hole_mask: np.ndarray, values: np.ndarray | None = None,
     edges (each line tried at ``hough_offsets`` cells either side, since Canny puts a binary edge on either side of
     the boundary) plus the hole's bounding box; all pairs are scored at once with integral images.
     """
-    from lidarmap.facade import FacadeParams
+    from lidarmap.facade.params import FacadeParams
 
     params = params or FacadeParams()
     hole = np.asarray(hole_mask, dtype=bool)
@@ -123,12 +123,12 @@ def fit_rectangle(hole_mask: np.ndarray, values: np.ndarray | None = None,
         return rect, window_uncertainty_eq3(vals, rect)
     c0, c1 = col_cands[ci], col_cands[cj]
     r0, r1 = row_cands[ri], row_cands[rj]
-    ones = _integral(patch_hole)
-    objs = _integral(patch_vals == OBJECT)
+    ones = integral_image(patch_hole)
+    objs = integral_image(patch_vals == OBJECT)
     R0, C0 = np.meshgrid(r0, c0, indexing="ij")
     R1, C1 = np.meshgrid(r1, c1, indexing="ij")
-    ones_in = _box_sums(ones, R0, R1, C0, C1)
-    obj_in = _box_sums(objs, R0, R1, C0, C1)
+    ones_in = box_sums(ones, R0, R1, C0, C1)
+    obj_in = box_sums(objs, R0, R1, C0, C1)
     area = (R1 - R0) * (C1 - C0)
     eps = ((area - ones_in) + (n_hole - ones_in) + obj_in) / n_hole
     best = np.unravel_index(int(np.argmin(eps)), eps.shape)

@@ -5,15 +5,15 @@ Contract used by the CLI (``lidarmap map update``)::
     new_map = refine_map(stored, points, trajectory, footprints, facade_params, refine_params, campaign_id, seed)
     new_map = add_aerial(stored, cloud, footprints, refine_params, campaign_id, seed)
 
-Both return a new :class:`~lidarmap.model.BuildingMap` (``stored`` is not modified) without the campaign record;
-the caller appends the :class:`~lidarmap.model.Campaign` and commits it with :class:`~lidarmap.store.MapStore`.
+Both return a new :class:`~lidarmap.map.model.BuildingMap` (``stored`` is not modified) without the campaign record;
+the caller appends the :class:`~lidarmap.map.model.Campaign` and commits it with :class:`~lidarmap.map.store.MapStore`.
 An empty ``stored`` map is built from the campaign alone (façade extraction, §2.2-2.4).
 
 Refinement of one stored façade by one campaign (:func:`refine_facade`), in the stored façade's frame:
 
 1. **Points** of the building within ``association_distance`` (2 m) of the façade's main plane, and along the wall
    within its extent (+ ``extend_margin``, or its footprint edge), belong to it; the rest may form new façades
-   (RANSAC, :func:`lidarmap.facade.building_facades`), e.g. a wall seen for the first time.
+   (RANSAC, :func:`lidarmap.facade.observe.observe.building_facades`), e.g. a wall seen for the first time.
 2. **Layers**: a GMM on the new points' depths (the same depth axis as the stored layers); components are matched to
    stored layers (the main layer first, then the others after removing the main layer's shift, gate
    ``layer_gate`` x the combined σ, at least ``layer_gate_min``) and fused by the Gaussian product of eq. (4)-(7)
@@ -21,7 +21,7 @@ Refinement of one stored façade by one campaign (:func:`refine_facade`), in the
 3. **Plane**: the new main layer's 3σ inliers give a PCA normal, combined with the stored one weighted by point counts;
    the frame is turned about the façade's middle and moved so that the fused main layer is at d = 0 again. The
    extent grows (whole cells, so the evidence grids stay aligned) where the new wall reaches beyond it.
-4. :func:`lidarmap.facade.observe_facade` gives what the campaign saw on the (grown) grid; the evidence grids add up:
+4. :func:`lidarmap.facade.observe.observe.observe_facade` gives what the campaign saw on the (grown) grid; the evidence grids add up:
    ``window_votes`` / ``object_votes`` / ``seen`` count campaigns per pixel. A campaign sampling the façade more
    sparsely than ``min_element_density`` (side walls at grazing angles) refines the plane and layers only.
 5. **Elements** of the same layer class are matched by polygon IoU (or a piece mostly inside another, so objects an
@@ -41,7 +41,7 @@ Element and façade ids stay stable: a merged object keeps the id of its oldest 
 ids. A campaign id already listed in a façade's ``campaigns`` is never fused again into it (re-applying is a no-op).
 
 :func:`add_aerial` adds roof planes per building from an aerial scan (the aerial pipeline's plane detector,
-:func:`lidarmap.flatten.detect_planes`) and fuses a later aerial campaign's planes with the stored ones.
+:func:`lidarmap.aerial.flatten.detect_planes`) and fuses a later aerial campaign's planes with the stored ones.
 See docs/refine.md for the parameters and measured numbers.
 """
 
@@ -57,18 +57,25 @@ import shapely
 from scipy import ndimage
 from shapely.geometry import Polygon, box
 
+from lidarmap.core import Footprints, PointCloud
 from lidarmap.errors import LidarmapError
-from lidarmap.facade import CampaignData, FacadeParams, building_facades, check_same_crs, layer_fit, observe_facade
-from lidarmap.facade_layers import assign_layers, grid_shape, mask_to_polygons
-from lidarmap.facade_planes import fit_line_2d, footprint_edges
-from lidarmap.facade_windows import _box_sums, _integral
-from lidarmap.io.footprints import Footprints
-from lidarmap.io.pointcloud import PointCloud
-from lidarmap.io.trajectory import Trajectory
-from lidarmap.model import (Building, BuildingMap, Element, ElementKind, Facade, FacadeEvidence, FacadeFrame, Layer,
-                            RoofPlane)
+from lidarmap.facade.campaign import CampaignData, check_same_crs
+from lidarmap.facade.layers import assign_layers, grid_shape, mask_to_polygons
+from lidarmap.facade.model import (
+    Element,
+    ElementKind,
+    Facade,
+    FacadeEvidence,
+    FacadeFrame,
+    Layer,
+)
+from lidarmap.facade.observe import building_facades, layer_fit, observe_facade
+from lidarmap.facade.openings import box_sums, integral_image
+from lidarmap.facade.params import FacadeParams
+from lidarmap.facade.planes import fit_line_2d, footprint_edges
+from lidarmap.map.model import Building, BuildingMap, RoofPlane
 
-__all__ = ["RefineParams", "refine_map", "add_aerial", "refine_facade", "assign_to_facades", "fuse_gaussians",
+__all__ = ["RefineParams", "add_aerial", "refine_facade", "assign_to_facades", "fuse_gaussians",
            "match_layers", "net_votes", "weighted_window_uncertainty", "refit_rectangle", "opening_uncertainty",
            "pad_evidence", "roof_planes", "fuse_roofs"]
 
@@ -432,10 +439,10 @@ def refit_rectangle(window_votes: np.ndarray, object_votes: np.ndarray, col_line
         rr, cc = np.nonzero(w)
         rect = (int(rr.min()), int(rr.max()) + 1, int(cc.min()), int(cc.max()) + 1)
         return rect, weighted_window_uncertainty(window_votes, object_votes, rect)
-    iw, io = _integral(w), _integral(o)
+    iw, io = integral_image(w), integral_image(o)
     R0, C0 = np.meshgrid(rl[ri], cl[ci], indexing="ij")
     R1, C1 = np.meshgrid(rl[rj], cl[cj], indexing="ij")
-    err = n_hole - _box_sums(iw, R0, R1, C0, C1) + 2 * _box_sums(io, R0, R1, C0, C1)
+    err = n_hole - box_sums(iw, R0, R1, C0, C1) + 2 * box_sums(io, R0, R1, C0, C1)
     best = np.unravel_index(int(np.argmin(err)), err.shape)
     rect = (int(R0[best]), int(R1[best]), int(C0[best]), int(C1[best]))
     return rect, float(err[best]) / n_hole
@@ -922,7 +929,7 @@ def assign_to_facades(facades: list[Facade], xyz: np.ndarray, polygon, params: R
     return best
 
 
-def _refine_building(stored: Building, camp: CampaignData, ids: np.ndarray, fparams: FacadeParams,
+def refine_building(stored: Building, camp: CampaignData, ids: np.ndarray, fparams: FacadeParams,
                      params: RefineParams, campaign_id: int, seed: int, rng: np.random.Generator,
                      tm: dict) -> Building:
     """A stored building after one campaign: its façades refined, new façades from the points none of them took."""
@@ -953,25 +960,6 @@ def _campaign_applied(stored: BuildingMap, campaign_id: int) -> bool:
     return any(c.campaign_id == campaign_id for c in stored.campaigns)
 
 
-def refine_map(stored: BuildingMap, points: PointCloud, trajectory: Trajectory, footprints: Footprints,
-               facade_params: FacadeParams, params: RefineParams, campaign_id: int, seed: int = 0,
-               timings: dict | None = None) -> BuildingMap:
-    """The map after one more mobile campaign (see the module doc); ``stored`` is not modified.
-
-    Buildings are matched to footprints by id; a building the map does not hold yet is extracted from the campaign
-    (§2.2-2.4). Re-applying a campaign id the map already lists (or a façade already holds) changes nothing.
-    ``timings`` (a dict) receives seconds per step. Runs building by building exactly like ``lidarmap map update``
-    (:func:`lidarmap.map_update.fuse_campaign`, in this process, the first error raised).
-    """
-    from lidarmap.map_update import cloud_source, fuse_campaign
-
-    if _campaign_applied(stored, campaign_id):
-        return copy.deepcopy(stored)
-    check_same_crs(points, footprints)
-    return fuse_campaign(stored, cloud_source(points), trajectory, footprints, facade_params, params, campaign_id,
-                         seed, strict=True, timings=timings).map
-
-
 # ----------------------------------------------------------------------------------------------------------------------
 # Roofs from aerial data
 
@@ -998,11 +986,11 @@ def _roof_candidates(xyz: np.ndarray, x_order: np.ndarray, classification: np.nd
 
 def roof_planes(xyz: np.ndarray, polygon, params: RefineParams, campaign_id: int, seed: int = 0) -> list[RoofPlane]:
     """Roof planes of one building from its aerial roof points (CRS): the aerial pipeline's plane detector
-    (:func:`lidarmap.flatten.detect_planes`), planes steeper than ``roof_max_slope_deg`` (walls) or with fewer than
+    (:func:`lidarmap.aerial.flatten.detect_planes`), planes steeper than ``roof_max_slope_deg`` (walls) or with fewer than
     ``roof_min_points`` inliers dropped; normals point up; outline = concave hull of the inliers (xy) within the
     footprint (+ ``roof_buffer``); σ = the inliers' RMS distance to the plane."""
-    from lidarmap.flatten import FlattenParams, detect_planes
-    from lidarmap.facade_layers import outline_polygon
+    from lidarmap.aerial.flatten import FlattenParams, detect_planes
+    from lidarmap.facade.layers import outline_polygon
 
     if len(xyz) < params.roof_min_points:
         return []
@@ -1088,7 +1076,7 @@ def add_aerial(stored: BuildingMap, cloud: PointCloud, footprints: Footprints, p
     Buildings the map does not hold yet are added with roofs only. Re-applying a campaign id the map (or a
     building's roofs) already lists changes nothing.
     """
-    from lidarmap.facade_planes import ground_mask
+    from lidarmap.facade.planes import ground_mask
 
     new_map = copy.deepcopy(stored)
     if _campaign_applied(stored, campaign_id):

@@ -21,10 +21,10 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from lidarmap.facade_layers import cell_index, square
+from lidarmap.facade.layers import cell_index, square
 
 if TYPE_CHECKING:  # pragma: no cover
-    from lidarmap.facade import FacadeParams
+    from lidarmap.facade.params import FacadeParams
 
 
 def sample_spacing(std: np.ndarray, max_points: int = 20000, rng: np.random.Generator | None = None) -> float:

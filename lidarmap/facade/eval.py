@@ -27,7 +27,8 @@ from collections.abc import Callable
 import numpy as np
 from shapely.geometry import Polygon, box
 
-from lidarmap.model import Building, ElementKind, Facade
+from lidarmap.facade.model import ElementKind, Facade
+from lidarmap.map.model import Building
 
 #: Element kinds scored against the truth (unknown regions are scored by area, see :func:`map_statistics`).
 SCORED_KINDS = ("window", "door", "structure")
@@ -82,7 +83,9 @@ def match_facade(f: Facade, truth_facades: list, register: Callable | None = Non
 
 def union_visibility(truth, campaigns: list[int]) -> dict[int, float]:
     """Fraction of each truth element's cells seen by at least one of ``campaigns`` (element id -> fraction)."""
-    from lidarmap.sim.visibility import visible_fraction  # the simulator's own rule (cell centres in the rect)
+    from lidarmap.sim.visibility import (
+        visible_fraction,  # the simulator's own rule (cell centres in the rect)
+    )
 
     grids: dict[int, np.ndarray] = {}
     for c in campaigns:

@@ -1,6 +1,6 @@
 """Façade extraction, part 1: ground removal, the footprint join and vertical planes per building.
 
-Everything here works on numpy arrays; :mod:`lidarmap.facade` orchestrates. Vertical planes are found in 2D (a
+Everything here works on numpy arrays; :mod:`lidarmap.facade.observe.observe` orchestrates. Vertical planes are found in 2D (a
 vertical plane is a line in xy), either by an efficient-RANSAC variant (Schnabel et al. 2007: normal-verified minimal
 sets, scoring on random subsets, connectivity along the wall) or by region growing on a k-NN graph; both return
 :class:`VerticalPlane` s that :func:`group_planes` merges into façade groups (parallel planes a few decimetres apart
@@ -19,11 +19,11 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from lidarmap.errors import InputError
-from lidarmap.model import FacadeFrame
+from lidarmap.facade.model import FacadeFrame
 
 if TYPE_CHECKING:  # pragma: no cover
-    from lidarmap.facade import FacadeParams
-    from lidarmap.io.footprints import Footprints
+    from lidarmap.core import Footprints
+    from lidarmap.facade.params import FacadeParams
 
 
 # ----------------------------------------------------------------------------------------------------------------------

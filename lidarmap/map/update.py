@@ -1,22 +1,22 @@
 """One mobile campaign fused into the façade map building by building, streamed with bounded memory (docs/map.md).
 
-``lidarmap map update --points`` and the in-memory entry points (:func:`lidarmap.refine.refine_map`,
-:func:`lidarmap.facade.extract_buildings`) all run :func:`fuse_campaign`:
+``lidarmap map update --points`` and the in-memory entry points (:func:`lidarmap.map.refine.refine_map`,
+:func:`lidarmap.map.update.extract_buildings`) all run :func:`fuse_campaign`:
 
 1. **Pass 1** reads the campaign in chunks (:func:`lidarmap.io.las.iter_las`, file order) and spools every point
-   (xyz, GPS time, class, its number in the file) into a :class:`~lidarmap.spool.ColumnSpool` keyed by the
+   (xyz, GPS time, class, its number in the file) into a :class:`~lidarmap.io.spool.ColumnSpool` keyed by the
    ``cell`` x ``cell`` xy cell it falls in (on disk, in a temporary folder the caller gives); it gathers the classes
-   present and the height rule's lowest cells (:class:`~lidarmap.campaign_scan.CampaignScan`).
+   present and the height rule's lowest cells (:class:`~lidarmap.facade.observe.observe.scan.CampaignScan`).
 2. **Pass 2** reads the spool once, cell by cell: the non-ground GPS time span (checked against the trajectory),
-   counts, and a stride sample for the scanner's reach limits (:class:`~lidarmap.campaign_scan.StatsPass`).
+   counts, and a stride sample for the scanner's reach limits (:class:`~lidarmap.facade.observe.observe.scan.StatsPass`).
 3. **Per building** (every footprint with spooled points near it): its *context* is the points of the box around
    its footprint and stored façades grown by everything façade work may look at (:func:`context_box`). With the
    footprints that could be nearer to some of its points and its reach track box it makes a :class:`BuildingJob`.
    Neighbouring buildings (footprint centres in one ``group_size`` cell) share one picklable :class:`GroupJob`: the
    union of their contexts, the reach limits and track. :func:`group_task` prepares the shared context once, then
-   :func:`building_task` turns each member into the new :class:`~lidarmap.model.Building`: façade extraction for a
-   building the map does not hold, refinement (:func:`lidarmap.refine._refine_building`) for one it holds.
-4. Jobs run through :func:`lidarmap.distributed.map_tasks` (this process, a LocalCluster or a remote scheduler);
+   :func:`building_task` turns each member into the new :class:`~lidarmap.map.model.Building`: façade extraction for a
+   building the map does not hold, refinement (:func:`lidarmap.map.refine.refine_building`) for one it holds.
+4. Jobs run through :func:`lidarmap.executor.map_tasks` (this process, a LocalCluster or a remote scheduler);
    this process collects the buildings, and the caller commits them (one transaction).
 
 **The same map whatever the chunking, workers or scheduler.** A building's result is a function of its job, and its
@@ -35,11 +35,12 @@ surroundings, not the campaign's size.
 
 from __future__ import annotations
 
+from lidarmap.executor import building_seed_sequence, group_by_cell
+
 import copy
 import dataclasses
 import math
 import time
-import zlib
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -48,18 +49,23 @@ import numpy as np
 import shapely
 from shapely.geometry import box as shapely_box
 
-from lidarmap.campaign_scan import CampaignScan, CampaignStats, PointClasses, StatsPass
-from lidarmap.distributed import TaskFailure, check_cluster_params, map_tasks, run_task
+from lidarmap.core import Footprints, PointCloud, Trajectory
 from lidarmap.errors import ConfigError, InputError
-from lidarmap.facade import (CampaignData, FacadeParams, building_facades, campaign_data, campaign_track,
-                             no_join_error)
-from lidarmap.facade_planes import check_points, join_footprints
-from lidarmap.io.footprints import Footprints
-from lidarmap.io.pointcloud import PointCloud
-from lidarmap.io.trajectory import Trajectory
-from lidarmap.model import Building, BuildingMap
-from lidarmap.refine import RefineParams, _refine_building
-from lidarmap.spool import ColumnSpool
+from lidarmap.executor import TaskFailure, check_cluster_params, map_tasks, run_task
+from lidarmap.facade.campaign import (
+    CampaignData,
+    campaign_data,
+    campaign_track,
+    check_same_crs,
+    no_join_error,
+)
+from lidarmap.facade.observe import building_facades
+from lidarmap.facade.params import FacadeParams
+from lidarmap.facade.planes import check_points, join_footprints
+from lidarmap.facade.scan import CampaignScan, CampaignStats, PointClasses, StatsPass
+from lidarmap.io.spool import ColumnSpool
+from lidarmap.map.model import Building, BuildingMap
+from lidarmap.map.refine import RefineParams, _campaign_applied, refine_building
 
 __all__ = ["UpdateParams", "CampaignSource", "cloud_source", "las_source", "CellGrid", "BuildingJob", "GroupJob",
            "BuildingOutcome", "GroupOutcome", "FusedCampaign", "fuse_campaign", "group_task", "building_task",
@@ -219,7 +225,7 @@ def _key_batches(counts: np.ndarray, rows: int) -> list[np.ndarray]:
 
 def _campaign_stats(spool: ColumnSpool, scan: CampaignScan, classes: PointClasses, trajectory: Trajectory,
                     params: FacadeParams) -> tuple[CampaignStats, np.ndarray]:
-    """Pass 2 over the spool (see :class:`~lidarmap.campaign_scan.StatsPass`); also the building points per cell."""
+    """Pass 2 over the spool (see :class:`~lidarmap.facade.observe.observe.scan.StatsPass`); also the building points per cell."""
     stats = StatsPass(classes, scan, trajectory)
     building_cells = np.zeros(spool.n_keys, dtype=np.int64)
     for keys in _key_batches(spool.counts, STATS_BATCH_ROWS):
@@ -236,8 +242,8 @@ def _campaign_stats(spool: ColumnSpool, scan: CampaignScan, classes: PointClasse
 
 def building_rng(seed: int, building_id: str) -> tuple[int, np.random.Generator]:
     """A building's seed and generator: the same whatever else is in the run and on every machine (from
-    (seed, building id), like :func:`lidarmap.pipeline.building_seed`)."""
-    sequence = np.random.SeedSequence([seed, zlib.crc32(str(building_id).encode("utf-8"))])
+    (seed, building id), from :func:`lidarmap.executor.building_seed_sequence`)."""
+    sequence = building_seed_sequence(seed, building_id)
     # sub-steps seed scikit-learn's GMM with seed * 31 + k, which must stay below 2**32
     return int(sequence.generate_state(1)[0] >> 5), np.random.default_rng(sequence)
 
@@ -267,7 +273,7 @@ def context_box(footprint: Any, stored: Building | None, limits: tuple[float, fl
 
     Its façades lie near the footprint (the join distance, the façade margin, the layers' depth range) and, for a
     stored building, near its stored façades, which a campaign can grow (whole cells, ``extend_margin``) and turn
-    (at most ``normal_max_angle_deg`` about their middle). From a façade :func:`lidarmap.facade.observe_facade`
+    (at most ``normal_max_angle_deg`` about their middle). From a façade :func:`lidarmap.facade.observe.observe.observe_facade`
     looks at non-ground points up to the scanner's reach in front (``limits[0] * reach_margin + 1``) and
     ``through_max_depth`` behind, at ground points ``ground_band`` in front, 1 m beyond both, in whole ``index_bin``
     bins; the reach test at track positions within the scanner's reach.
@@ -379,7 +385,7 @@ def building_task(job: BuildingJob, camp: CampaignData, fparams: FacadeParams,
         return BuildingOutcome(None, 0, tm)
     seed, rng = building_rng(job.seed, job.building_id)
     if job.stored is not None:
-        result = _refine_building(job.stored, camp, ids, fparams, rparams, job.campaign_id, seed, rng, tm)
+        result = refine_building(job.stored, camp, ids, fparams, rparams, job.campaign_id, seed, rng, tm)
         return BuildingOutcome(result, len(ids), tm)
     facades = building_facades(camp, ids, job.footprint, fparams, job.campaign_id, seed, rng, tm)
     result = Building(building_id=job.building_id, footprint=job.footprint, attributes=dict(job.properties),
@@ -462,14 +468,10 @@ def _group_job(group: list[int], stored: BuildingMap, footprints: Footprints, tr
 
 
 def building_groups(footprints: Footprints, todo: list[int], size: float) -> list[list[int]]:
-    """``todo`` (footprint indices) grouped by the ``size`` x ``size`` m cell holding their footprint's centre
-    (0: one building per group); groups in the order of their first footprint."""
-    groups: dict[tuple[int, int] | int, list[int]] = {}
-    for b in todo:
-        x0, y0, x1, y1 = footprints.polygons[b].bounds
-        key = b if size <= 0 else (math.floor((x0 + x1) / 2 / size), math.floor((y0 + y1) / 2 / size))
-        groups.setdefault(key, []).append(b)
-    return list(groups.values())
+    """``todo`` (footprint indices) grouped by the ``size`` m cell of their footprint
+    (:func:`lidarmap.executor.group_by_cell`)."""
+    boxes = shapely.bounds(footprints.polygons[np.asarray(todo, dtype=np.int64)]) if todo else np.empty((0, 4))
+    return [[todo[k] for k in group] for group in group_by_cell(boxes, size)]
 
 
 def _run_jobs(jobs: Iterable[GroupJob], shared: tuple, update: UpdateParams,
@@ -561,3 +563,41 @@ def _assemble(stored: BuildingMap, footprints: Footprints, outcomes: dict[int, A
         raise InputError(f"the task of every building failed ({len(failed)}; {bid}: {reason}); nothing changed",
                          stats.source)
     return FusedCampaign(new_map, failed, stats)
+
+
+def extract_buildings(points: PointCloud, trajectory: Trajectory, footprints: Footprints, params: FacadeParams,
+                      campaign_id: int, seed: int = 0, timings: dict | None = None) -> list[Building]:
+    """Buildings with façades, layers, elements and evidence from one mobile-mapping campaign.
+
+    ``points`` need ``gps_time`` (for the sensor positions of the occlusion ray tracing) and are in the same CRS as
+    ``footprints``. Returns the buildings (footprint order) that received at least one façade; ``timings`` (a dict)
+    receives seconds per step. Runs building by building exactly like ``lidarmap map update``
+    (:func:`lidarmap.map.update.fuse_campaign`): each building draws its random numbers from (seed, its id).
+    """
+    from lidarmap.map.model import BuildingMap
+    from lidarmap.map.refine import RefineParams
+    from lidarmap.map.update import cloud_source, fuse_campaign
+
+    check_same_crs(points, footprints)
+    fused = fuse_campaign(BuildingMap(crs_wkt=""), cloud_source(points), trajectory, footprints, params,
+                          RefineParams(), campaign_id, seed, strict=True, timings=timings)
+    return list(fused.map.buildings.values())
+
+
+def refine_map(stored: BuildingMap, points: PointCloud, trajectory: Trajectory, footprints: Footprints,
+               facade_params: FacadeParams, params: RefineParams, campaign_id: int, seed: int = 0,
+               timings: dict | None = None) -> BuildingMap:
+    """The map after one more mobile campaign (see the module doc); ``stored`` is not modified.
+
+    Buildings are matched to footprints by id; a building the map does not hold yet is extracted from the campaign
+    (§2.2-2.4). Re-applying a campaign id the map already lists (or a façade already holds) changes nothing.
+    ``timings`` (a dict) receives seconds per step. Runs building by building exactly like ``lidarmap map update``
+    (:func:`lidarmap.map.update.fuse_campaign`, in this process, the first error raised).
+    """
+    from lidarmap.map.update import cloud_source, fuse_campaign
+
+    if _campaign_applied(stored, campaign_id):
+        return copy.deepcopy(stored)
+    check_same_crs(points, footprints)
+    return fuse_campaign(stored, cloud_source(points), trajectory, footprints, facade_params, params, campaign_id,
+                         seed, strict=True, timings=timings).map

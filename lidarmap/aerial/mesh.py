@@ -17,7 +17,7 @@ split into one vertex per sheet of surface through it (connected components of t
 edges they share), so every edge belongs to exactly two triangles: the mesh is watertight and consistently oriented
 (``trimesh`` ``is_volume``) for any set of voxels, and its volume is exactly ``voxels x size^3``. Vertices are
 ``origin + lattice corner x size`` in float64. By default the voxel shell is first filled column by column
-(:func:`lidarmap.voxel.fill_columns`, ``voxel_fill = "columns"``), so the mesh is the building's outer surface and
+(:func:`lidarmap.aerial.voxel.fill_columns`, ``voxel_fill = "columns"``), so the mesh is the building's outer surface and
 not a two-sided shell.
 
 **Surface mesh.** Airborne LiDAR sees roofs densely and walls sparsely, so the reconstruction is 2.5D: the roof is a
@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 
 import numpy as np
 import shapely
@@ -45,14 +44,12 @@ from shapely.geometry import Polygon
 from shapely.geometry.base import BaseGeometry
 from shapely.geometry.polygon import orient
 
+from lidarmap.aerial.voxel import fill_columns
+from lidarmap.core import CUBE_CORNERS, CUBE_QUADS, VoxelGrid
 from lidarmap.errors import ConfigError, InputError
-from lidarmap.io.atomic import atomic_path
-from lidarmap.voxel import CUBE_CORNERS, CUBE_QUADS, VoxelGrid, fill_columns
 
-__all__ = ["MeshParams", "voxel_mesh", "surface_mesh", "outline_polygon", "write_mesh", "write_ply_arrays",
-           "MESH_SUFFIXES"]
+__all__ = ["MeshParams", "voxel_mesh", "surface_mesh", "outline_polygon"]
 
-MESH_SUFFIXES = (".ply", ".obj")
 
 #: Largest bounding box (in voxels) meshed at once: the dense occupancy arrays take ~20 bytes per voxel.
 _MAX_MESH_CELLS = 2 ** 28
@@ -67,7 +64,7 @@ class MeshParams:
 
     Voxel mesh
         voxel_fill ("columns"): "columns" fills each voxel column from the lowest voxel layer up to its highest
-            voxel before meshing (:func:`lidarmap.voxel.fill_columns`: a closed 2.5D solid, the outer surface only);
+            voxel before meshing (:func:`lidarmap.aerial.voxel.fill_columns`: a closed 2.5D solid, the outer surface only);
             "none" meshes the voxels as they are (a shell gives a two-sided mesh, one voxel thick).
         fill_gaps (1.0): with "columns", gaps in the voxel outline up to this wide (metres) are closed and take the
             height of the nearest column (holes inside the outline are always filled).
@@ -415,69 +412,4 @@ def _boundary_edges(triangles: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------------------------------
 # Files
 
-
-def write_ply_arrays(path: str | Path, vertices: np.ndarray, faces: np.ndarray, vertex_colors: np.ndarray | None = None,
-                     face_colors: np.ndarray | None = None, comment: str | None = None) -> Path:
-    """Binary little-endian PLY: ``double`` x/y/z, optional ``uchar`` red/green/blue per vertex and per face.
-
-    ``faces`` is (F, k) with one polygon size k (3 triangles, 4 quads).
-    """
-    vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
-    faces = np.asarray(faces, dtype=np.int64)
-    k = faces.shape[1]
-    header = ["ply", "format binary_little_endian 1.0"]
-    header += [f"comment {line}" for line in (comment or "lidarmap mesh, CRS coordinates").splitlines()]
-    header += [f"element vertex {len(vertices)}", "property double x", "property double y", "property double z"]
-    vertex_fields = [("xyz", "<f8", (3,))]
-    if vertex_colors is not None:
-        header += ["property uchar red", "property uchar green", "property uchar blue"]
-        vertex_fields.append(("rgb", "u1", (3,)))
-    header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
-    face_fields = [("n", "u1"), ("idx", "<i4", (k,))]
-    if face_colors is not None:
-        header += ["property uchar red", "property uchar green", "property uchar blue"]
-        face_fields.append(("rgb", "u1", (3,)))
-    header.append("end_header")
-    vertex_rows = np.empty(len(vertices), dtype=vertex_fields)
-    vertex_rows["xyz"] = vertices
-    if vertex_colors is not None:
-        vertex_rows["rgb"] = np.asarray(vertex_colors)[:, :3]
-    face_rows = np.empty(len(faces), dtype=face_fields)
-    face_rows["n"] = k
-    face_rows["idx"] = faces
-    if face_colors is not None:
-        face_rows["rgb"] = np.asarray(face_colors)[:, :3]
-    with atomic_path(path) as tmp, tmp.open("wb") as fh:
-        fh.write(("\n".join(header) + "\n").encode("ascii"))
-        fh.write(vertex_rows.tobytes())
-        fh.write(face_rows.tobytes())
-    return Path(path)
-
-
-def _write_obj(path: str | Path, vertices: np.ndarray, faces: np.ndarray, vertex_colors: np.ndarray | None) -> Path:
-    """Wavefront OBJ: ``v x y z [r g b]`` with the shortest text that reads back to the same float64, 1-based faces."""
-    if vertex_colors is None:
-        v_lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in vertices.tolist()]
-    else:
-        c = np.asarray(vertex_colors)[:, :3] / 255.0
-        v_lines = [f"v {x!r} {y!r} {z!r} {r:.4f} {g:.4f} {b:.4f}"
-                   for (x, y, z), (r, g, b) in zip(vertices.tolist(), c.tolist())]
-    f_lines = ["f " + " ".join(map(str, row)) for row in (np.asarray(faces) + 1).tolist()]
-    with atomic_path(path) as tmp:
-        tmp.write_text("# lidarmap mesh, CRS coordinates\n" + "\n".join(v_lines + f_lines) + "\n", encoding="ascii")
-    return Path(path)
-
-
-def write_mesh(path: str | Path, mesh: trimesh.Trimesh) -> Path:
-    """Write a mesh as ``.ply`` (binary, float64 vertices, vertex or face colours) or ``.obj`` (text, vertex
-    colours only), atomically, by the file's suffix."""
-    suffix = Path(path).suffix.lower()
-    if suffix not in MESH_SUFFIXES:
-        raise InputError(f"unknown mesh format {suffix or '(no suffix)'!r} (use {' or '.join(MESH_SUFFIXES)})", path)
-    kind = mesh.visual.kind if hasattr(mesh.visual, "kind") else None
-    vertex_colors = np.asarray(mesh.visual.vertex_colors) if kind == "vertex" else None
-    if suffix == ".obj":
-        return _write_obj(path, np.asarray(mesh.vertices, dtype=np.float64), mesh.faces, vertex_colors)
-    face_colors = np.asarray(mesh.visual.face_colors) if kind == "face" else None
-    return write_ply_arrays(path, mesh.vertices, mesh.faces, vertex_colors=vertex_colors, face_colors=face_colors)
 

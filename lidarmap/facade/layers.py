@@ -1,6 +1,6 @@
 """Façade extraction, part 2: the 2.5D depth grid, GMM depth layers (§2.3), objects per layer and eq. (1)-(2).
 
-Grids follow :class:`lidarmap.model.FacadeEvidence`: shape (rows, cols), row i covers t in [t0 + i*cell, ...), column
+Grids follow :class:`lidarmap.facade.observe.model.FacadeEvidence`: shape (rows, cols), row i covers t in [t0 + i*cell, ...), column
 j covers s in [s0 + j*cell, ...).
 """
 
@@ -17,10 +17,10 @@ from scipy import ndimage
 from scipy.special import erf
 from shapely.geometry import MultiPoint, Polygon
 
-from lidarmap.model import Layer
+from lidarmap.facade.model import Layer
 
 if TYPE_CHECKING:  # pragma: no cover
-    from lidarmap.facade import FacadeParams
+    from lidarmap.facade.params import FacadeParams
 
 
 # ----------------------------------------------------------------------------------------------------------------------

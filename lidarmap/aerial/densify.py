@@ -17,7 +17,7 @@ on the building's surfaces come out, so that voxels and meshes of sparse walls a
    plane therefore come from both sides exactly as if there were no split: no seam (paper Fig. 8);
 5. upsamples every leaf with an :class:`Upsampler`: :class:`GeometricUpsampler` (here; plane- and edge-aware, never
    bridges a gap wider than the local spacing, so window openings stay open) or the learned
-   :class:`lidarmap.upsampler.LearnedUpsampler` (a small implicit patch model in the spirit of SAPCU);
+   :class:`lidarmap.aerial.upsampler.LearnedUpsampler` (a small implicit patch model in the spirit of SAPCU);
 6. gives new points the colour of their input neighbours by inverse-distance weighting (:func:`transfer_colour`).
 
 Stage API (arrays and small dataclasses, no files)::
@@ -44,15 +44,19 @@ import typing
 import numpy as np
 from scipy.spatial import cKDTree
 
+from lidarmap.aerial.surface import (
+    area_per_point,
+    knn,
+    local_planes,
+    local_spacing,
+    seed_planes,
+)
 from lidarmap.errors import ConfigError, InputError
 from lidarmap.frame import LocalFrame
 
-__all__ = [
-    "DensifyParams", "DensifyResult", "Leaf", "Upsampler", "GeometricUpsampler", "UPSAMPLERS", "DISTRIBUTIONS",
-    "densify", "make_upsampler", "remove_outliers", "area_per_point", "new_point_counts", "median_split",
-    "transfer_colour", "noise_amplification", "seam_ratios", "local_spacing", "local_planes", "seed_planes",
-    "flat_points",
-]
+__all__ = ["DensifyParams", "DensifyResult", "Leaf", "Upsampler", "GeometricUpsampler", "UPSAMPLERS", "DISTRIBUTIONS",
+           "densify", "make_upsampler", "remove_outliers", "area_per_point", "new_point_counts", "median_split",
+           "transfer_colour", "noise_amplification", "seam_ratios", "local_spacing", "local_planes", "seed_planes"]
 
 UPSAMPLERS = ("geometric", "learned")
 DISTRIBUTIONS = ("uniform", "proportional")
@@ -79,7 +83,7 @@ class DensifyParams:
             reach of the upsampler (about ``gap_factor`` x the local spacing).
     Upsampler
         upsampler ("geometric"): "geometric" (:class:`GeometricUpsampler`) or "learned" (the shipped
-            :class:`lidarmap.upsampler.LearnedUpsampler`). Geometric is the default: on simulated buildings its
+            :class:`lidarmap.aerial.upsampler.LearnedUpsampler`). Geometric is the default: on simulated buildings its
             new points are 5x closer to the true surface, it puts fewer of them into window openings, multiplies
             no noise and is 3.5x faster (docs/densify.md, bench_densify).
         weights (""): weights file of the learned upsampler (``scripts/train_upsampler.py``); "" = the shipped one.
@@ -180,42 +184,6 @@ class Upsampler(typing.Protocol):
 # Neighbourhoods
 
 
-def _knn(xyz: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Distances and indices of the k nearest neighbours of every point (itself first), always 2-D."""
-    k = max(1, min(k, len(xyz)))
-    dist, idx = cKDTree(xyz).query(xyz, k=k, workers=-1)
-    return dist.reshape(len(xyz), k), idx.reshape(len(xyz), k)
-
-
-def local_spacing(dist: np.ndarray, idx: np.ndarray, k: int = 8) -> np.ndarray:
-    """Sample spacing around each point from its k-NN distances (itself in column 0): sqrt(pi r_k² / k), the side of
-    the square each point stands for on a surface, then the median over the neighbourhood (robust at edges and for
-    isolated points, which take their neighbours' spacing)."""
-    kk = min(k, dist.shape[1] - 1)
-    if kk < 1:
-        return np.zeros(len(dist))
-    raw = np.sqrt(math.pi / kk) * dist[:, kk]
-    return np.median(raw[idx], axis=1)
-
-
-def local_planes(xyz: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """PCA plane of every point's neighbourhood ``idx`` (N, k): centroid (N, 3), unit normal (N, 3) and RMS
-    residual (N,)."""
-    nb = xyz[idx]
-    centroid = nb.mean(axis=1)
-    centred = nb - centroid[:, None]
-    cov = np.einsum("nki,nkj->nij", centred, centred) / idx.shape[1]
-    vals, vecs = np.linalg.eigh(cov)
-    return centroid, vecs[:, :, 0], np.sqrt(np.maximum(vals[:, 0], 0.0))
-
-
-def area_per_point(xyz: np.ndarray, k: int = 8) -> np.ndarray:
-    """Surface area (m²) each point stands for: pi r_k² / k (r_k the distance to its k-th neighbour), median over
-    its k neighbours. On a surface sampled at density rho this is 1 / rho."""
-    dist, idx = _knn(xyz, k + 1)
-    return local_spacing(dist, idx, k) ** 2
-
-
 def new_point_counts(area: np.ndarray, ratio: float, distribution: str, max_new: int,
                      rng: np.random.Generator) -> tuple[np.ndarray, float]:
     """How many new points each input point gets, and the target surface density (points/m²).
@@ -269,7 +237,7 @@ def remove_outliers(xyz: np.ndarray, k: int = 12, std_ratio: float = 3.0) -> np.
     n = len(xyz)
     if k <= 0 or n <= k + 1:
         return np.ones(n, dtype=bool)
-    dist, idx = _knn(xyz, k + 1)
+    dist, idx = knn(xyz, k + 1)
     mean_d = np.maximum(dist[:, 1:].mean(axis=1), 1e-9)
     score = np.log(mean_d / mean_d[idx[:, 1:]].max(axis=1))
     spread = score.std()
@@ -357,34 +325,6 @@ def median_split(xyz: np.ndarray, max_leaf: int = 5000, min_leaf: int = 100, hal
 # Geometric upsampler
 
 
-def seed_planes(xyz: np.ndarray, cand: np.ndarray, centroid: np.ndarray, normal: np.ndarray, rms: np.ndarray,
-                plane_tolerance: float, max_plane_rms: float) -> tuple:
-    """Per seed (``cand[:, 0]``, its neighbours in the other columns): the flattest neighbourhood plane among its
-    own and its neighbours' (:func:`local_planes`) that the seed lies on (within ``plane_tolerance`` or 3 RMS).
-    Returns that plane's centroid, normal, the tolerance used and ``flat``: whether such a plane exists with an
-    RMS residual of at most ``max_plane_rms`` (False on clutter, vegetation, noise)."""
-    p = xyz[cand[:, 0]]
-    off = np.abs(np.einsum("skd,skd->sk", normal[cand], p[:, None] - centroid[cand]))
-    tol_k = np.maximum(plane_tolerance, 3.0 * rms[cand])
-    score = np.where(off <= tol_k, rms[cand], np.inf)
-    choice = np.argmin(score, axis=1)
-    rows = np.arange(len(cand))
-    best = cand[rows, choice]
-    flat = np.isfinite(score[rows, choice]) & (rms[best] <= max_plane_rms)
-    return centroid[best], normal[best], tol_k[rows, choice], flat
-
-
-def flat_points(xyz: np.ndarray, neighbours: int = 12, plane_tolerance: float = 0.08,
-                max_plane_rms: float = 0.08) -> np.ndarray:
-    """True for points that lie on a flat local surface (:func:`seed_planes`); the geometric upsampler seeds only
-    around these, and the learned one can be told to (``LearnedUpsampler.flat_only``)."""
-    if len(xyz) < 3:
-        return np.zeros(len(xyz), dtype=bool)
-    _, idx = _knn(xyz, neighbours + 1)
-    centroid, normal, rms = local_planes(xyz, idx)
-    return seed_planes(xyz, idx, centroid, normal, rms, plane_tolerance, max_plane_rms)[3]
-
-
 @dataclasses.dataclass(frozen=True)
 class GeometricUpsampler:
     """Plane- and edge-aware resampling inside the local sample's footprint.
@@ -411,7 +351,7 @@ class GeometricUpsampler:
         src = np.flatnonzero(n_new > 0)
         if len(xyz) < 3 or len(src) == 0:
             return np.zeros((0, 3))
-        dist, idx = _knn(xyz, self.neighbours + 1)
+        dist, idx = knn(xyz, self.neighbours + 1)
         centroid, normal, rms = local_planes(xyz, idx)
         spacing = local_spacing(dist, idx, self.spacing_k)
         plane_c, plane_n, tol, flat = self._seed_planes(xyz, idx[src], centroid, normal, rms)
@@ -461,7 +401,9 @@ class GeometricUpsampler:
 def make_upsampler(params: DensifyParams) -> Upsampler:
     """The upsampler named by ``params.upsampler`` (the learned one loads the shipped weights)."""
     if params.upsampler == "learned":
-        from lidarmap.upsampler import load_upsampler  # torch only when asked for
+        from lidarmap.aerial.upsampler import (
+            load_upsampler,  # torch only when asked for
+        )
 
         return load_upsampler(params.weights or None)
     return GeometricUpsampler(neighbours=params.neighbours, gap_factor=params.gap_factor,
@@ -517,7 +459,7 @@ def densify(xyz: np.ndarray, rgb: np.ndarray | None = None, params: DensifyParam
             upsampler: Upsampler | None = None) -> DensifyResult:
     """Densify one building's points (CRS coordinates, float64 (N, 3); colour (N, 3) uint8 or ``None``).
 
-    ``upsampler`` overrides ``params.upsampler`` (e.g. a :class:`~lidarmap.upsampler.LearnedUpsampler` loaded from
+    ``upsampler`` overrides ``params.upsampler`` (e.g. a :class:`~lidarmap.aerial.upsampler.LearnedUpsampler` loaded from
     another weights file). Same input, params and seed give the same output. ``stats``: ``points_in``,
     ``outliers_removed``, ``points_kept``, ``new_requested``, ``new_points``, ``ratio`` (achieved output / kept),
     ``target_density`` (points/m², "uniform" only), ``leaves``, ``leaves_upsampled``, ``leaves_as_is``,

@@ -54,11 +54,18 @@ import numpy as np
 import shapely
 from pyproj import CRS
 
-from lidarmap import __version__
+from lidarmap._version import __version__
 from lidarmap.errors import CRSError, InputError, LidarmapError, MapLockedError
+from lidarmap.facade.model import (
+    Element,
+    ElementKind,
+    Facade,
+    FacadeEvidence,
+    FacadeFrame,
+    Layer,
+)
 from lidarmap.io.atomic import current_umask
-from lidarmap.model import (Building, BuildingMap, Campaign, Element, ElementKind, Facade, FacadeEvidence,
-                            FacadeFrame, Layer, RoofPlane)
+from lidarmap.map.model import Building, BuildingMap, Campaign, RoofPlane
 
 __all__ = ["MapStore", "SCHEMA_VERSION", "APPLICATION_ID", "ENTITIES", "campaign_fingerprint", "writer_lock",
            "lock_path_for"]
@@ -795,7 +802,7 @@ class MapStore:
         {entity: {"added", "updated", "removed"}} that :meth:`history` reports for the campaign.
         """
         if not isinstance(campaign, Campaign):
-            raise TypeError("campaign must be a lidarmap.model.Campaign")
+            raise TypeError("campaign must be a lidarmap.map.model.Campaign")
         cid = int(campaign.campaign_id)
         self._check_crs(new_map.crs_wkt)
         rows = _encode_map(new_map)  # encode (and compress) before taking any lock

@@ -14,7 +14,7 @@ distance. Here the same idea is local and metric-free, so it runs on buildings o
 pooling, MLP head), about 20 k weights. It is trained self-supervised by ``scripts/train_upsampler.py`` (sparse
 input -> dense surface: simulated airborne scans against dense samples of the simulator's exact building surfaces,
 windows included, and real class-6 points thinned against all of them); the shipped weights are
-``lidarmap/models/upsampler.pt``.
+``lidarmap/weights/upsampler.pt``.
 
 Model file: ``torch.save`` of a plain dict (``format``, ``version``, ``arch``, ``state_dict``, ``inference``,
 ``training``), loadable with ``torch.load(weights_only=True)``.
@@ -34,17 +34,18 @@ from scipy.spatial import cKDTree
 from torch import nn
 from torch.nn import functional as F
 
-from lidarmap.densify import _knn, flat_points, local_spacing
+from lidarmap.aerial.surface import flat_points, knn, local_spacing
 from lidarmap.errors import InputError
 from lidarmap.io.atomic import atomic_path
 from lidarmap.io.torchfile import read_torch_file
+from lidarmap.weights import WEIGHTS_DIR
 
 __all__ = ["UpsamplerArch", "PatchProjector", "LearnedUpsampler", "patch_inputs", "load_upsampler",
            "save_upsampler", "DEFAULT_WEIGHTS", "FORMAT"]
 
 FORMAT = "lidarmap-upsampler"
 FORMAT_VERSION = 1
-DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "models" / "upsampler.pt"
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "upsampler.pt"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,12 +109,12 @@ def patch_inputs(xyz: np.ndarray, tree: cKDTree, seeds: np.ndarray, scale: np.nd
 
 @dataclasses.dataclass
 class LearnedUpsampler:
-    """:class:`~lidarmap.densify.Upsampler` around a trained :class:`PatchProjector` (see the module docstring).
+    """:class:`~lidarmap.aerial.densify.Upsampler` around a trained :class:`PatchProjector` (see the module docstring).
 
     seed_sigma (0.5): seeds ~ N(point, (seed_sigma x spacing)²) per axis; reach (1.0): a moved seed is kept only
     with an input point within reach x spacing; batch (8192): seeds per forward pass; spacing_k (8): neighbours of
     the local spacing (as in the geometric upsampler); flat_only (True): seed only around points on a flat local
-    surface (:func:`lidarmap.densify.flat_points`, default thresholds), as the geometric upsampler does -- without
+    surface (:func:`lidarmap.aerial.surface.flat_points`, default thresholds), as the geometric upsampler does -- without
     it, seeds around segmentation noise are projected onto whatever surface is near and multiply the noise.
     ``training``: what the weights were trained on.
     """
@@ -134,7 +135,7 @@ class LearnedUpsampler:
             return np.zeros((0, 3))
         if self.flat_only:  # like the geometric upsampler: no seeds around clutter and noise
             n_new = np.where(flat_points(xyz), n_new, 0)
-        dist, idx = _knn(xyz, self.spacing_k + 1)
+        dist, idx = knn(xyz, self.spacing_k + 1)
         spacing = np.maximum(local_spacing(dist, idx, self.spacing_k), 1e-3)
         owner = np.repeat(np.arange(len(xyz)), np.maximum(n_new, 0))
         scale = spacing[owner]

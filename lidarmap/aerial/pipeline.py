@@ -28,6 +28,8 @@ building whose task fails is reported in ``summary.json`` (``failed``: id -> rea
 
 from __future__ import annotations
 
+from lidarmap.executor import building_seed, group_by_cell
+
 import dataclasses
 import hashlib
 import json
@@ -35,7 +37,6 @@ import math
 import shutil
 import tempfile
 import time
-import zlib
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -44,23 +45,32 @@ import numpy as np
 import trimesh
 from pyproj import CRS
 
-from lidarmap import __version__
-from lidarmap.densify import DensifyParams, densify
-from lidarmap.distributed import TaskFailure, map_tasks, run_task
+from lidarmap._version import __version__
+from lidarmap.aerial.densify import DensifyParams, densify
+from lidarmap.aerial.flatten import FlattenParams, flatten_points
+from lidarmap.aerial.mesh import MeshParams, surface_mesh, voxel_mesh
+from lidarmap.aerial.prep import (
+    BuildingPoints,
+    PrepParams,
+    PrepResult,
+    SpooledPrep,
+    spool_chunks,
+)
+from lidarmap.aerial.voxel import VoxelParams, voxelize
+from lidarmap.core import Footprints, PointCloud, VoxelGrid
 from lidarmap.errors import ConfigError, InputError
-from lidarmap.flatten import FlattenParams, flatten_points
+from lidarmap.executor import TaskFailure, map_tasks, run_task
 from lidarmap.io.atomic import atomic_dir, write_text_atomic
-from lidarmap.io.footprints import Footprints
 from lidarmap.io.las import write_las
-from lidarmap.io.pointcloud import PointCloud
-from lidarmap.mesh import MeshParams, surface_mesh, voxel_mesh, write_mesh
-from lidarmap.prep import BuildingPoints, PrepParams, SpooledPrep, building_file_name
+from lidarmap.io.meshfile import write_mesh
+from lidarmap.io.prepdir import building_file_name
+from lidarmap.io.tiles import read_tiles, scan_tiles
+from lidarmap.io.voxels import write_vox, write_voxels
 from lidarmap.segment.features import BUILDING_CLASS
 from lidarmap.segment.predict import PredictParams, apply_classes, predict
-from lidarmap.voxel import VoxelGrid, VoxelParams, voxelize, write_vox, write_voxels
 
 __all__ = ["RunParams", "PipelineConfig", "BuildingOutput", "RunResult", "process_building", "run_pipeline",
-           "segment_group", "group_task", "GroupJob", "building_groups", "building_seed", "NOISE_CLASS", "STAGES"]
+           "segment_group", "group_task", "GroupJob", "building_groups", "NOISE_CLASS", "STAGES"]
 
 #: Stages that may follow segmentation, in any order.
 STAGES = ("densify", "flatten")
@@ -174,11 +184,6 @@ class BuildingOutput:
     voxels: VoxelGrid
     meshes: dict[str, trimesh.Trimesh]
     stats: dict[str, Any]
-
-
-def building_seed(seed: int, building_id: str) -> int:
-    """The seed of one building: the same for a building whatever else is in the run, and on every machine."""
-    return int(np.random.SeedSequence([seed, zlib.crc32(str(building_id).encode("utf-8"))]).generate_state(1)[0])
 
 
 def _with_extra(cloud: PointCloud, name: str, values: np.ndarray) -> None:
@@ -386,7 +391,7 @@ def _json_default(value: Any) -> Any:
 class RunResult:
     """What a run did: per building its building.json record (processed now or earlier), failures with reasons.
     ``prep`` describes the buildings (entries: ids, footprints, heights, bounds); its spool is gone once the run
-    returns, so its points cannot be loaded any more (use :func:`lidarmap.prep.prep_tiles` for that)."""
+    returns, so its points cannot be loaded any more (use :func:`lidarmap.aerial.pipeline.prep_tiles` for that)."""
 
     out_dir: Path
     records: list[dict[str, Any]]
@@ -457,7 +462,7 @@ class GroupJob:
 
 def group_task(job: GroupJob, model: Any) -> list[BuildingOutput | TaskFailure | None]:
     """Segment a group of buildings together, then reconstruct each one to do (in this process or on a dask
-    worker); a building that fails gives a :class:`~lidarmap.distributed.TaskFailure` and the others go on."""
+    worker); a building that fails gives a :class:`~lidarmap.executor.TaskFailure` and the others go on."""
     run = job.config.run
     first = job.buildings[0].id
     params = dataclasses.replace(job.config.segment, union=run.union, seed=building_seed(run.seed, first))
@@ -467,14 +472,8 @@ def group_task(job: GroupJob, model: Any) -> list[BuildingOutput | TaskFailure |
 
 
 def building_groups(spooled: SpooledPrep, size: float) -> list[list[int]]:
-    """Entries grouped by the ``size`` x ``size`` m cell holding the centre of their points' bounds (0: one
-    building per group); groups in the order of their first entry, entries in prep order."""
-    groups: dict[tuple[int, int] | int, list[int]] = {}
-    for k, e in enumerate(spooled.entries):
-        key = k if size <= 0 else (math.floor((e.bounds[0] + e.bounds[2]) / 2 / size),
-                                   math.floor((e.bounds[1] + e.bounds[3]) / 2 / size))
-        groups.setdefault(key, []).append(k)
-    return list(groups.values())
+    """Prep entries grouped by the ``size`` m cell of their points' bounds (:func:`lidarmap.executor.group_by_cell`)."""
+    return group_by_cell(np.array([e.bounds[:4] for e in spooled.entries]).reshape(-1, 4), size)
 
 
 def _context_digest(clouds: Sequence[PointCloud | None]) -> str:
@@ -545,7 +544,6 @@ def run_pipeline(tiles: Sequence[str | Path], footprints: Footprints, out_dir: s
     Memory: the tiles are streamed into a spool on disk (``OUT/.work-*``, removed at the end); then one group of
     buildings (plus its context) at a time is loaded and sent to a task, at most a few tasks in flight.
     """
-    from lidarmap.prep import stream_tiles
 
     started = time.perf_counter()
     out = check_out_dir(out_dir)
@@ -649,3 +647,28 @@ def check_stage_names(stages: Iterable[str]) -> tuple[str, ...]:
 
 __all__ += ["building_dir", "building_fingerprint", "finished", "write_building", "check_stage_names",
             "building_mask", "check_out_dir", "densify_cloud", "flatten_cloud", "building_voxels", "STAGE_FUNCTIONS"]
+
+
+def stream_tiles(paths: Sequence[str | Path], footprints: Footprints, params: PrepParams | None = None,
+                 crs: str | CRS | None = None, progress: Callable[[int], None] | None = None,
+                 work_dir: str | Path | None = None) -> SpooledPrep:
+    """Stream any number of tiles (chunks of ``params.chunk_points``) into a spool of the points kept per footprint.
+
+    ``crs`` is used for tiles without a CRS record; footprints in another CRS are reprojected to the tiles'. Raises
+    :class:`InputError` / :class:`CRSError` naming the file for unreadable tiles, CRS conflicts and footprints that miss
+    the points (see :func:`lidarmap.aerial.prep.spool_chunks`).
+    """
+    params = params or PrepParams()
+    tiles = scan_tiles(paths, crs)
+    return spool_chunks(read_tiles(tiles, params.chunk_points, crs), footprints, tiles.crs, tiles.bounds, tiles.name,
+                        [str(p) for p in tiles.paths], params, progress, work_dir)
+
+
+def prep_tiles(paths: Sequence[str | Path], footprints: Footprints, params: PrepParams | None = None,
+               crs: str | CRS | None = None, progress: Callable[[int], None] | None = None) -> PrepResult:
+    """:func:`stream_tiles` in memory, every building loaded (see :class:`SpooledPrep` for bounded memory)."""
+    spooled = stream_tiles(paths, footprints, params, crs, progress)
+    try:
+        return spooled.materialise()
+    finally:
+        spooled.close()

@@ -1,0 +1,470 @@
+"""Façades, depth layers, elements and occlusions of buildings from ONE mobile-mapping campaign.
+
+Zou & Sester, *Incremental map refinement of building information using LiDAR point clouds*, §2.2-2.4:
+
+1. ground removed (class 2, or a height rule), building points (class 6, or every non-ground point) joined to the
+   nearest footprint, points farther than ``max_footprint_distance`` ignored (§2.2);
+2. per building, vertical planes (efficient RANSAC or region growing, :mod:`lidarmap.facade.observe.observe.planes`) grouped into
+   façades, matched to footprint edges and oriented outwards;
+3. per façade, a GMM over depth (BIC picks the number of layers), main layer = heaviest component, its 3σ inliers give
+   a PCA normal, points re-projected and the GMM fitted again; d = 0 sits on the main layer (§2.3);
+4. objects per layer by region growing on the 2.5D grid, outlines by concave hull, uncertainty eq. (1)-(2);
+5. occlusion by ray tracing from the trajectory, windows/doors from holes by Hough rectangles and eq. (3), unknown
+   regions (occlusions, irregular holes) with uncertainty = inf (§2.4).
+
+:func:`extract_buildings` is the entry point; the pieces are importable for tests and the refinement stage.
+See docs/facade.md for the parameters and their defaults.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+from scipy import ndimage
+from shapely.geometry import box
+
+from lidarmap.facade.campaign import CampaignData
+from lidarmap.facade.layers import (
+    DepthGrid,
+    assign_layers,
+    close_sampling_gaps,
+    depth_grid,
+    fit_layers,
+    grid_shape,
+    grow_regions,
+    mask_to_polygons,
+    outline_polygon,
+    square,
+    uncertainty_eq1,
+)
+from lidarmap.facade.model import (
+    Element,
+    ElementKind,
+    Facade,
+    FacadeEvidence,
+    FacadeFrame,
+    Layer,
+)
+from lidarmap.facade.occlusion import (
+    occlusion_mask,
+    project_rays,
+    reach_mask,
+    sample_spacing,
+    through_cells,
+)
+from lidarmap.facade.openings import (
+    HOLE,
+    OBJECT,
+    OCCLUDED,
+    Opening,
+    complete_by_repetition,
+    detect_openings,
+    fit_rectangle,
+    refine_bounds,
+    window_uncertainty_eq3,
+)
+from lidarmap.facade.params import FacadeParams
+from lidarmap.facade.planes import (
+    PlaneGroup,
+    boundary_distance,
+    estimate_normals,
+    fit_facade_frame,
+    fit_line_2d,
+    footprint_edges,
+    group_planes,
+    match_footprint_edge,
+    ransac_vertical_planes,
+    region_growing_vertical_planes,
+    voxel_subsample,
+)
+
+__all__ = ["FacadeParams", "CampaignData", "building_facades", "extract_facade", "observe_facade",
+           "detect_facade_groups", "fit_facade_frame", "depth_grid", "DepthGrid", "fit_layers", "assign_layers",
+           "occlusion_mask", "through_cells", "reach_mask", "project_rays", "detect_openings", "fit_rectangle",
+           "refine_bounds", "complete_by_repetition", "uncertainty_eq1", "window_uncertainty_eq3", "value_grid",
+           "footprint_edges", "Opening", "HOLE", "OCCLUDED", "OBJECT"]
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Helpers
+
+
+def _equalised_sample(flat: np.ndarray, per_cell: int, max_samples: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices keeping at most ``per_cell`` random points per cell id, then at most ``max_samples`` of them."""
+    if len(flat) == 0:
+        return np.zeros(0, dtype=np.int64)
+    perm = rng.permutation(len(flat))
+    keys = flat[perm]
+    order = np.argsort(keys, kind="stable")
+    sk = keys[order]
+    rank = np.arange(len(sk)) - np.searchsorted(sk, sk, side="left")
+    chosen = perm[order[rank < per_cell]]
+    if len(chosen) > max_samples:
+        chosen = rng.choice(chosen, size=max_samples, replace=False)
+    return chosen
+
+
+def layer_fit(std: np.ndarray, cell: float, params: FacadeParams, rng: np.random.Generator,
+               seed: int) -> list[Layer]:
+    """GMM layers over a density-equalised sample of façade points (at most gmm_points_per_cell per grid cell)."""
+    keys = np.floor(std[:, 0] / cell).astype(np.int64) * 1_000_003 + np.floor(std[:, 1] / cell).astype(np.int64)
+    sample = _equalised_sample(keys, params.gmm_points_per_cell, params.gmm_max_samples, rng)
+    return fit_layers(std[sample, 2], params, seed=seed)
+
+
+def _main_layer(layers: list[Layer]) -> Layer:
+    return max(layers, key=lambda la: la.weight)
+
+
+def value_grid(observed: np.ndarray, occluded: np.ndarray, through: np.ndarray) -> np.ndarray:
+    """The paper's Figure 6 grid: -1 observed wall/object, 0 occluded/unreachable, 1 hole (seen through or empty)."""
+    values = np.full(observed.shape, HOLE, dtype=np.int8)
+    values[occluded & ~through] = OCCLUDED
+    values[observed] = OBJECT
+    return values
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Entry points
+
+
+def detect_facade_groups(xyz: np.ndarray, params: FacadeParams, rng: np.random.Generator) -> list[PlaneGroup]:
+    """Vertical planes of one building's points (voxel-subsampled), grouped into façades."""
+    det = voxel_subsample(xyz, params.detect_voxel, params.detect_max_points, rng)
+    det_xyz = xyz[det]
+    if len(det_xyz) < params.min_facade_points:
+        return []
+    normals, nbrs = estimate_normals(det_xyz, params.normal_k)
+    if params.plane_method == "region":
+        planes = region_growing_vertical_planes(det_xyz, normals, nbrs, params)
+    else:
+        planes = ransac_vertical_planes(det_xyz, normals, params, rng)
+    return group_planes(planes, params)
+
+
+def building_facades(camp: CampaignData, ids: np.ndarray, polygon, params: FacadeParams, campaign_id: int,
+                     seed: int = 0, rng: np.random.Generator | None = None, tm: dict | None = None) -> list[Facade]:
+    """The façades of one building from its joined points ``ids`` (indices into the campaign)."""
+    tm = tm if tm is not None else {}
+    rng = rng if rng is not None else np.random.default_rng(seed)
+    clock = time.perf_counter()
+    xyz_b = camp.xyz[ids]
+    near = boundary_distance(xyz_b[:, :2], polygon, params.join_quantum) <= params.max_footprint_distance
+    ids, xyz_b = ids[near], xyz_b[near]
+    groups = detect_facade_groups(xyz_b, params, rng)
+    tm["planes"] = tm.get("planes", 0.0) + time.perf_counter() - clock
+    if not groups:
+        return []
+    # assign each point to the eligible group with the smallest |d|
+    xy = xyz_b[:, :2]
+    best = np.full(len(xy), -1, dtype=np.int64)
+    best_d = np.full(len(xy), np.inf)
+    for g_i, g in enumerate(groups):
+        d = g.plane.distance(xy)
+        s = g.plane.along(xy)
+        ok = (d >= g.d_min - params.layer_back) & (d <= g.d_max + params.layer_front)
+        ok &= (s >= g.s_min - params.facade_margin) & (s <= g.s_max + params.facade_margin)
+        closer = ok & (np.abs(d) < best_d)
+        best[closer] = g_i
+        best_d[closer] = np.abs(d[closer])
+    facades: list[Facade] = []
+    for g_i, g in enumerate(groups):
+        members = ids[best == g_i]
+        if len(members) < params.min_facade_points:
+            continue
+        facade = extract_facade(camp, members, g, polygon, params, campaign_id, seed * 31 + g_i, tm)
+        if facade is not None:
+            facade.facade_id = len(facades)
+            facades.append(facade)
+    return facades
+
+
+def _orient(frame: FacadeFrame, polygon, xyz: np.ndarray, sensors: np.ndarray,
+            params: FacadeParams) -> FacadeFrame:
+    """Orient the frame's normal outwards: the footprint interior behind it, else the sensors in front of it."""
+    std = frame.to_facade(xyz)
+    s_range = (float(std[:, 0].min()), float(std[:, 0].max()))
+    outward = None
+    if polygon is not None:
+        _, outward = match_footprint_edge(frame, s_range, polygon, params)
+    if outward is None:
+        toward_sensor = np.nanmean(np.sum((sensors - xyz) * frame.normal, axis=1))
+        outward = bool(toward_sensor >= 0)
+    return frame if outward else FacadeFrame(origin=frame.origin, u=-frame.u)
+
+
+def extract_facade(camp: CampaignData, member_ids: np.ndarray, group: PlaneGroup, polygon, params: FacadeParams,
+                   campaign_id: int, seed: int = 0, tm: dict | None = None) -> Facade | None:
+    """A new façade from its points (indices into the campaign) and their plane group: GMM layers, 3σ PCA normal,
+    re-projection and GMM again (§2.3), the frame put on the main layer at the bottom-left of its points, then
+    :func:`observe_facade`'s analysis. ``None`` when too few points remain."""
+    tm = tm if tm is not None else {}
+    clock = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    xyz = camp.xyz[member_ids]
+    sensors = camp.sensors[member_ids]
+    cell = params.cell
+    n2 = group.plane.normal
+    frame = FacadeFrame(origin=np.array([*(-group.plane.c * n2), 0.0]), u=np.array([-n2[1], n2[0], 0.0]))
+    frame = _orient(frame, polygon, xyz, sensors, params)
+    std = frame.to_facade(xyz)
+    lo, hi = group.d_min - params.layer_back, group.d_max + params.layer_front
+    if frame.normal[:2] @ n2 < 0:  # flipped: depths of the members flip too
+        lo, hi = -group.d_max - params.layer_back, -group.d_min + params.layer_front
+    keep = (std[:, 2] >= lo) & (std[:, 2] <= hi)
+    for _ in range(max(1, params.refine_iterations)):
+        if keep.sum() < params.min_facade_points:
+            return None
+        main = _main_layer(layer_fit(std[keep], cell, params, rng, seed))
+        inl = keep & (np.abs(std[:, 2] - main.mu) <= params.sigma_k * main.sigma)
+        if inl.sum() < 3:
+            return None
+        normal2, c = fit_line_2d(xyz[inl, :2])  # PCA: smallest eigenvector of the inliers, horizontal
+        if normal2 @ frame.normal[:2] < 0:
+            normal2, c = -normal2, -c
+        frame = FacadeFrame(origin=np.array([*(-c * normal2), 0.0]), u=np.array([-normal2[1], normal2[0], 0.0]))
+        std = frame.to_facade(xyz)
+        keep = (std[:, 2] >= -params.layer_back) & (std[:, 2] <= params.layer_front)
+    if keep.sum() < params.min_facade_points:
+        return None
+    layers = layer_fit(std[keep], cell, params, rng, seed)
+    main = _main_layer(layers)
+    on_main = keep & (assign_layers(std[:, 2], layers, params.sigma_k) == layers.index(main))
+    if on_main.sum() < params.min_facade_points:
+        return None
+    # the frame: d = 0 on the main layer, origin at the bottom-left of its points (robust quantiles)
+    s_lo, s_hi = np.quantile(std[on_main, 0], [0.001, 0.999])
+    t_lo = float(np.quantile(std[on_main, 1], 0.001))
+    on_any = keep & (assign_layers(std[:, 2], layers, params.sigma_k) >= 0)
+    t_hi = float(np.quantile(std[on_any, 1], 0.999))
+    frame = FacadeFrame(origin=frame.to_crs(np.array([[s_lo, t_lo, main.mu]]))[0], u=frame.u)
+    length, height = float(s_hi - s_lo), float(t_hi - t_lo)
+    if length < params.min_facade_length or height <= cell:
+        return None
+    for la in layers:
+        la.mu -= main.mu
+    tm["layers"] = tm.get("layers", 0.0) + time.perf_counter() - clock
+    return observe_facade(camp, frame, (0.0, length, 0.0, height), params, campaign_id, seed=seed,
+                          polygon=polygon, member_ids=member_ids, layers=layers, tm=tm)
+
+
+def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, float, float, float],
+                   params: FacadeParams, campaign_id: int, seed: int = 0, polygon=None,
+                   member_ids: np.ndarray | None = None, layers: list[Layer] | None = None,
+                   tm: dict | None = None) -> Facade | None:
+    """What one campaign says about a façade whose plane is known (a new one, or one of the map for refinement).
+
+    The frame and the extent are kept as given, so the evidence grids align with the map's (cell
+    ``params.cell`` from (extent[0], extent[2])). Points: ``member_ids`` or else the campaign's building points
+    within [-layer_back, layer_front] of the plane over the extent (+ ``facade_margin``). Layers: ``layers`` (depths
+    relative to the frame) or else a GMM (BIC) fitted here. Then the 2.5D grid, occlusion by ray tracing,
+    objects per layer (eq. 1-2), holes -> windows/doors (eq. 3) and unknown regions, and the evidence grids.
+    Returns ``None`` when the campaign has too few points on the plane.
+    """
+    tm = tm if tm is not None else {}
+    clock = time.perf_counter()
+    rng = np.random.default_rng(seed + 7)
+    cell = params.cell
+    s0, s1, t0, t1 = (float(v) for v in extent)
+    margin = params.facade_margin
+    if member_ids is None:
+        corners = frame.to_crs(np.array([[s0 - margin, 0, -params.layer_back], [s1 + margin, 0, -params.layer_back],
+                                         [s0 - margin, 0, params.layer_front], [s1 + margin, 0, params.layer_front]]))
+        x0, y0 = corners[:, :2].min(axis=0)
+        x1, y1 = corners[:, :2].max(axis=0)
+        ids = camp.nonground_ids[camp.nonground_index.query_box(x0, y0, x1, y1)]
+        ids = ids[camp.building[ids]]
+        std = frame.to_facade(camp.xyz[ids])
+        ok = (std[:, 2] >= -params.layer_back) & (std[:, 2] <= params.layer_front)
+        ok &= (std[:, 0] >= s0 - margin) & (std[:, 0] <= s1 + margin) & (std[:, 1] >= t0 - 1.0)
+        ok &= std[:, 1] <= t1 + 1.0
+        member_ids = ids[ok]
+    xyz = camp.xyz[member_ids]
+    sensors = camp.sensors[member_ids]
+    std = frame.to_facade(xyz)
+    keep = (std[:, 2] >= -params.layer_back) & (std[:, 2] <= params.layer_front)
+    keep &= (std[:, 0] >= s0 - margin) & (std[:, 0] <= s1 + margin)
+    if keep.sum() < params.min_facade_points:
+        return None
+    if layers is None:
+        layers = layer_fit(std[keep], cell, params, rng, seed)
+    layers = [dataclasses.replace(la, layer_id=i, campaigns=[campaign_id]) for i, la in enumerate(layers)]
+    main = _main_layer(layers)
+    main_idx = layers.index(main)
+    labels = np.full(len(std), -1, dtype=np.int64)
+    labels[keep] = assign_layers(std[keep, 2], layers, params.sigma_k)
+    tm["layers"] = tm.get("layers", 0.0) + time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    shape = grid_shape(extent, cell)
+    rows, cols = shape
+    grid = depth_grid(std[labels >= 0], cell, extent)
+    lab_pts = labels[labels >= 0]
+    flat = grid.flat()
+    ok = flat >= 0
+    per_layer = np.zeros((len(layers), rows * cols), dtype=np.int64)
+    np.add.at(per_layer, (lab_pts[ok], flat[ok]), 1)
+    count = per_layer.sum(axis=0).reshape(shape)
+    if not (count > 0).any():
+        return None
+    # the cell's surface is its front-most layer with a real share of its points (layers are sorted deepest
+    # first): a wall hides what lies behind it in the same cell (room ceilings seen through a window), a balcony
+    # hides the wall
+    present = (per_layer >= 2) & (per_layer >= params.layer_cell_share * per_layer.sum(axis=0))
+    present[main_idx] = per_layer[main_idx] >= 2  # any real wall sample hides what is behind it
+    front_most = len(layers) - 1 - np.argmax(present[::-1], axis=0)
+    dominant = np.where(present.any(axis=0), front_most, np.where(count.ravel() > 0, np.argmax(per_layer, axis=0),
+                                                                   -1)).reshape(shape)
+    observed_raw = count > 0
+    observed = close_sampling_gaps(count, cell, params.close_cells, params.max_close_cells)
+
+    # points around the façade (any class): occluders in front, seen-through points behind
+    front = sensors @ frame.normal - frame.normal @ frame.origin
+    front_dist = float(min(np.nanquantile(front, 0.99) + 1.0, camp.limits[0] * params.reach_margin + 1.0))
+    corners = frame.to_crs(np.array([[s0, 0, front_dist], [s1, 0, front_dist],
+                                     [s0, 0, -params.through_max_depth], [s1, 0, -params.through_max_depth]]))
+    x0, y0 = corners[:, :2].min(axis=0) - 1.0
+    x1, y1 = corners[:, :2].max(axis=0) + 1.0
+    around = camp.nonground_ids[camp.nonground_index.query_box(x0, y0, x1, y1)]
+    a_std = frame.to_facade(camp.xyz[around])
+    a_sens = frame.to_facade(camp.sensors[around])
+    fg = (a_std[:, 2] > params.occluder_min_depth) & (a_std[:, 2] < a_sens[:, 2])
+    fg_spacing = sample_spacing(a_std[fg], rng=rng) if fg.any() else 0.0
+    occluded = occlusion_mask(a_std[fg], a_sens[fg], shape, s0, t0, cell, params, spacing=fg_spacing)
+    behind = a_std[:, 2] < -params.layer_back
+    through = through_cells(a_std[behind], a_sens[behind], shape, s0, t0, cell) > 0
+    reachable = reach_mask(frame.to_facade(camp.track), shape, s0, t0, cell, camp.limits, params)
+    observed &= ~(through & ~observed_raw)
+    if params.occlusion_grow_cells > 0:
+        grow = square(params.occlusion_grow_cells)
+        occluded = occluded | (ndimage.binary_dilation(occluded, structure=grow) & ~observed & ~through)
+    ground_t = _ground_line(camp, frame, s0, s1, t0, cols, cell, params)
+    # the ground is never above the lowest wall measured in a column
+    lowest = np.where(observed_raw.any(axis=0), t0 + np.argmax(observed_raw, axis=0) * cell, np.inf)
+    ground_t = np.minimum(ground_t, lowest)
+    t_centres = t0 + (np.arange(rows) + 0.5) * cell
+    below = (t_centres[:, None] < ground_t[None, :] - 0.5 * cell) & ~observed_raw
+    values = value_grid(observed, occluded | ~reachable | below, through)
+    tm["occlusion"] = tm.get("occlusion", 0.0) + time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    elements: list[Element] = []
+    window_votes = np.zeros(shape, dtype=np.int32)
+    min_cells = max(1, int(math.ceil(params.min_object_area / (cell * cell))))
+    min_width = max(1, int(round(params.min_object_width / cell)))
+    g_inside = labels >= 0
+    pts_row = np.full(len(std), -1, dtype=np.int64)
+    pts_col = np.full(len(std), -1, dtype=np.int64)
+    pts_row[g_inside], pts_col[g_inside] = grid.row, grid.col
+    door_cells = np.zeros(shape, dtype=bool)
+
+    def add(kind: ElementKind, poly, layer_id, unc: float, n: int = 0) -> None:
+        elements.append(Element(element_id=len(elements), kind=kind, polygon=poly, layer_id=layer_id,
+                                uncertainty=float(unc), n_points=int(n), campaigns=[campaign_id]))
+
+    for li, layer in enumerate(layers):
+        offset = layer.mu - main.mu
+        if li == main_idx or abs(offset) <= params.structure_min_offset:
+            continue
+        comp, n = grow_regions(dominant == li, params.close_cells, min_cells, min_width)
+        for k in range(1, n + 1):
+            cmask = comp == k
+            sel = (labels == li) & (pts_row >= 0)
+            sel[sel] = cmask[pts_row[sel], pts_col[sel]]
+            if not sel.any():
+                continue
+            kind, poly = ElementKind.STRUCTURE, None
+            unc = uncertainty_eq1(layer.mu, layer.sigma, float(std[sel, 2].mean()))[1]
+            if offset < 0:  # recessed and rectangular: a door leaf on the ground, a window (blinds) above it
+                rr, cc = np.nonzero(cmask)
+                r_lo, r_hi, c_lo, c_hi = rr.min(), rr.max() + 1, cc.min(), cc.max() + 1
+                width, h = (c_hi - c_lo) * cell, (r_hi - r_lo) * cell
+                fill = cmask.sum() / float((r_hi - r_lo) * (c_hi - c_lo))
+                on_ground = t0 + r_lo * cell <= float(np.mean(ground_t[c_lo:c_hi])) + params.door_bottom_tol
+                depths = std[sel, 2]
+                spread = 1.4826 * float(np.median(np.abs(depths - np.median(depths))))  # robust σ of the object
+                opening = fill >= params.Ta and min(width, h) >= params.min_opening_size \
+                    and width * h <= params.max_opening_area and spread <= params.surface_max_sigma
+                if opening and on_ground and h >= params.door_min_height and width <= params.door_max_width:
+                    kind = ElementKind.DOOR
+                elif opening and params.recessed_windows and not (on_ground and h >= params.door_min_height):
+                    kind = ElementKind.WINDOW
+                elif spread > params.surface_max_sigma:
+                    continue  # recessed clutter (reveals, mixed cells, interiors seen through glass): no surface
+                if kind is not ElementKind.STRUCTURE:
+                    vals = np.where(cmask, HOLE, np.where(values == OCCLUDED, OCCLUDED, OBJECT))
+                    rect, unc = fit_rectangle(cmask, vals, params)
+                    b_s0, b_s1, b_t0, b_t1 = refine_bounds(rect, None, s0, t0, cell, params)
+                    poly = box(max(b_s0, s0), max(b_t0, t0), min(b_s1, s1), min(b_t1, t1))
+                    door_cells |= cmask
+            if poly is None:
+                st = std[sel, :2]
+                if len(st) > params.max_outline_points:
+                    st = st[rng.choice(len(st), size=params.max_outline_points, replace=False)]
+                poly = outline_polygon(st, cell, params.concave_ratio)
+            if poly is not None:
+                add(kind, poly, layer.layer_id, unc, int(sel.sum()))
+    window_votes[door_cells] = 1
+    values[door_cells] = OBJECT  # a door leaf is not a hole of the wall for the window search
+
+    wall_st = std[labels == main_idx, :2]
+    openings = detect_openings(values, cell, params, ground_t=ground_t, t0=t0, s0=s0, wall_st=wall_st)
+    if params.complete_by_repetition:
+        complete_by_repetition(openings, values, s0, t0, cell, params)
+    for op in openings:
+        if op.kind in (ElementKind.WINDOW, ElementKind.DOOR) and op.bounds is not None:
+            b_s0, b_s1, b_t0, b_t1 = op.bounds
+            add(op.kind, box(max(b_s0, s0), max(b_t0, t0), min(b_s1, s1), min(b_t1, t1)), None, op.uncertainty)
+            window_votes[op.mask] = 1
+            continue
+        if op.window_evidence:
+            window_votes[op.mask] = 1
+        for poly in mask_to_polygons(op.mask, s0, t0, cell):
+            add(ElementKind.UNKNOWN, poly, None, math.inf)
+    min_unknown = max(1, int(math.ceil(params.min_unknown_area / (cell * cell))))
+    occ_comp, n_occ = grow_regions((values == OCCLUDED) & ~below, 0, min_unknown)
+    for k in range(1, n_occ + 1):
+        for poly in mask_to_polygons(occ_comp == k, s0, t0, cell):
+            add(ElementKind.UNKNOWN, poly, None, math.inf)
+    tm["elements"] = tm.get("elements", 0.0) + time.perf_counter() - clock
+
+    seen = (values != OCCLUDED).astype(np.int32)
+    object_votes = ((values == OBJECT) & ~door_cells).astype(np.int32)
+    evidence = FacadeEvidence(cell=cell, s0=s0, t0=t0, window_votes=window_votes, object_votes=object_votes,
+                              seen=seen)
+    edge = match_footprint_edge(frame, (s0, s1), polygon, params)[0] if polygon is not None else None
+    for la, n in zip(layers, np.bincount(labels[labels >= 0], minlength=len(layers))):
+        la.n_points = int(n)
+    return Facade(facade_id=0, frame=frame, sigma=float(main.sigma), extent=(s0, s1, t0, t1), layers=layers,
+                  elements=elements, main_layer=main.layer_id, n_points=int((labels >= 0).sum()),
+                  footprint_edge=edge, campaigns=[campaign_id], evidence=evidence)
+
+
+def _ground_line(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, t0: float, cols: int, cell: float,
+                 params: FacadeParams) -> np.ndarray:
+    """Ground height (façade t) in front of every grid column: the 20th percentile height of the ground points in
+    a band ``ground_band`` in front of the wall, per ``ground_bin`` along it, median-filtered over 3 bins and
+    interpolated; the grid's bottom ``t0`` where no ground point was measured."""
+    s_mid = s0 + (np.arange(cols) + 0.5) * cell
+    if camp.ground_index is None:
+        return np.full(cols, t0)
+    band = params.ground_band
+    corners = frame.to_crs(np.array([[s0, 0, 0.0], [s1, 0, 0.0], [s0, 0, band], [s1, 0, band]]))
+    x0, y0 = corners[:, :2].min(axis=0)
+    x1, y1 = corners[:, :2].max(axis=0)
+    ids = camp.ground_ids[camp.ground_index.query_box(x0, y0, x1, y1)]
+    g = frame.to_facade(camp.xyz[ids])
+    g = g[(g[:, 2] > 0.2) & (g[:, 2] < band) & (g[:, 0] >= s0) & (g[:, 0] <= s1)]
+    if len(g) < 3:
+        return np.full(cols, t0)
+    bins = np.floor((g[:, 0] - s0) / params.ground_bin).astype(np.int64)
+    order = np.argsort(bins, kind="stable")
+    uniq, start = np.unique(bins[order], return_index=True)
+    low = np.array([np.quantile(g[order[a:b], 1], 0.2) for a, b in zip(start, np.append(start[1:], len(order)))])
+    if len(low) >= 3:  # a bin of mislabelled points (a car hid the street) must not lift the ground
+        padded = np.concatenate([low[:1], low, low[-1:]])
+        low = np.median(np.stack([padded[:-2], padded[1:-1], padded[2:]]), axis=0)
+    return np.interp(s_mid, s0 + (uniq + 0.5) * params.ground_bin, low)
