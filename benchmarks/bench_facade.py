@@ -198,7 +198,7 @@ def simulated_rows(seed: int, methods: tuple[str, ...]) -> tuple[list, dict]:
             fps = read_footprints(Path(tmp) / "footprints.geojson", crs=cloud.crs)
             for method in methods:
                 start = time.perf_counter()
-                buildings = extract_buildings(cloud, traj, fps, FacadeParams(plane_method=method), camp.id, seed=0)
+                buildings = extract_buildings(cloud, traj, fps, FacadeParams().updated(plane_method=method), camp.id, seed=0)
                 took = time.perf_counter() - start
                 scored = evaluate_facades(buildings, truth, camp.id, register=camp.register)
                 raw = evaluate_facades(buildings, truth, camp.id, register=None)
@@ -242,7 +242,7 @@ def main() -> None:
     for method in ("ransac", "region"):
         tm: dict = {}
         start = time.perf_counter()
-        buildings = extract_buildings(cloud, traj, fps, FacadeParams(plane_method=method), campaign_id=1, seed=0,
+        buildings = extract_buildings(cloud, traj, fps, FacadeParams().updated(plane_method=method), campaign_id=1, seed=0,
                                       timings=tm)
         took = time.perf_counter() - start
         ev = evaluate(buildings, truth)

@@ -20,19 +20,20 @@ that many payloads and results whatever the number of tasks.
 
 from __future__ import annotations
 
-import zlib
-
-import numpy as np
-
 import contextlib
 import dataclasses
 import logging
 import uuid
 import warnings
+import zlib
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
+import numpy as np
+
 from lidarmap.errors import ConfigError, LidarmapError
+
+log = logging.getLogger(__name__)
 
 __all__ = ["TaskFailure", "run_task", "map_tasks", "cluster_client", "check_cluster_params"]
 
@@ -55,6 +56,7 @@ def run_task(fn: Callable[..., Any], payload: Any, *shared: Any) -> Any:
     try:
         return fn(payload, *shared)
     except LidarmapError as exc:
+        log.warning("task failed: %s", getattr(exc, "problem", str(exc)))
         return TaskFailure(getattr(exc, "problem", str(exc)))
     except (MemoryError, ValueError, ArithmeticError, IndexError, KeyError, RuntimeError, TypeError,
             AssertionError) as exc:  # a bug or bad data in one task; reported, never silently dropped

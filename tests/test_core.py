@@ -107,3 +107,61 @@ def test_atomic_dir_replaces_whole_or_not_at_all(tmp_path: Path) -> None:
         (tmp / "b.txt").write_text("v2")
     assert sorted(p.name for p in target.iterdir()) == ["b.txt"]  # replaced, not merged
     assert sorted(p.name for p in tmp_path.iterdir()) == ["building"]  # no temporary folders left
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Parameters: declared constraints, nested groups, old flat keys
+
+
+def _params_classes():
+    from lidarmap.aerial.pipeline import PipelineConfig
+    from lidarmap.facade.params import FacadeParams
+    from lidarmap.map.refine import RefineParams
+    from lidarmap.map.update import UpdateParams
+    from lidarmap.segment.baseline import BaselineParams
+    from lidarmap.segment.train import TrainParams
+    from lidarmap.sim.params import SimParams
+
+    stages = [type(getattr(PipelineConfig(), f.name)) for f in dataclasses.fields(PipelineConfig)]
+    return [*stages, FacadeParams, RefineParams, UpdateParams, BaselineParams, TrainParams, SimParams]
+
+
+@pytest.mark.parametrize("params_cls", _params_classes(), ids=lambda c: c.__name__)
+def test_every_numeric_parameter_declares_its_constraint(params_cls):
+    from lidarmap.config import undeclared
+
+    assert undeclared(params_cls) == []
+    # and the defaults satisfy them
+    params_cls()
+
+
+def test_nested_facade_tables_flat_keys_and_one_line_errors(caplog):
+    from lidarmap.config import resolve
+    from lidarmap.facade.params import FacadeParams
+
+    nested = resolve(FacadeParams, {"facade": {"planes": {"ransac_threshold": 0.04}, "layers": {"cell": 0.2}}})
+    assert nested.planes.ransac_threshold == 0.04 and nested.layers.cell == 0.2
+    assert nested.openings == FacadeParams().openings  # untouched groups keep their defaults
+    with caplog.at_level("WARNING", logger="lidarmap.config"):
+        flat = resolve(FacadeParams, {"facade": {"ransac_threshold": 0.04, "cell": 0.2}})
+    assert flat == nested
+    assert "[facade] ransac_threshold is now [facade.planes] ransac_threshold" in caplog.text
+    with pytest.raises(ConfigError, match=r"\[facade.openings\]: Ta must be \(0, 1\], not 1.5"):
+        resolve(FacadeParams, {"facade": {"openings": {"Ta": 1.5}}})
+    with pytest.raises(ConfigError, match=r"ransac_threshold must be > 0"):
+        resolve(FacadeParams, {"facade": {"planes": {"ransac_threshold": -1}}})
+    with pytest.raises(ConfigError, match="unknown option 'ransac_treshold'"):
+        resolve(FacadeParams, {"facade": {"planes": {"ransac_treshold": 0.1}}})
+    with pytest.raises(ConfigError, match=r"plane_method must be in ransac, region, not 'hough'"):
+        resolve(FacadeParams, {"facade": {"plane_method": "hough"}})
+    # command-line flags keep flat names and land in their group
+    assert resolve(FacadeParams, {}, cell=0.3).layers.cell == 0.3
+    assert FacadeParams().updated(cell=0.3, Ta=0.9) == resolve(FacadeParams, {}, cell=0.3, Ta=0.9)
+
+
+def test_constraints_refuse_non_finite_numbers():
+    from lidarmap.aerial.densify import DensifyParams
+    from lidarmap.config import resolve
+
+    with pytest.raises(ConfigError, match="halo must be a finite number"):
+        resolve(DensifyParams, {"densify": {"halo": float("nan")}})

@@ -221,7 +221,7 @@ def test_depth_grid_counts_and_means():
 def test_gmm_two_depth_layers_bic_picks_two():
     rng = np.random.default_rng(3)
     depths = np.concatenate([rng.normal(0.0, 0.01, 14000), rng.normal(0.35, 0.01, 6000)])
-    params = FacadeParams(min_layer_separation=0.0)  # BIC alone decides
+    params = FacadeParams().updated(min_layer_separation=0.0)  # BIC alone decides
     layers = fit_layers(depths, params, seed=0)
     assert len(layers) == 2
     mus = sorted(la.mu for la in layers)
@@ -309,7 +309,7 @@ def test_complete_by_repetition_restores_a_window_cut_by_a_shadow():
     values[30:45, 10:22] = 1  # first floor, clean
     values[55:70, 10:22] = 1  # second floor ...
     values[50:60, 6:26] = 0  # ... whose lower half a balcony's shadow hides, with the wall below it
-    params = FacadeParams(min_hole_area=0.1)
+    params = FacadeParams().updated(min_hole_area=0.1)
     ops = detect_openings(values, 0.1, params)
     wins = sorted((op for op in ops if op.kind is ElementKind.WINDOW), key=lambda op: op.bounds[2])
     assert len(wins) == 3 and wins[2].bounds[3] - wins[2].bounds[2] < 1.2
@@ -416,7 +416,7 @@ def test_extract_scene_without_interior_returns(scene):
 
 def test_region_growing_method_agrees(scene):
     cloud, traj, fps, truth = scene
-    buildings = extract_buildings(cloud, traj, fps, FacadeParams(plane_method="region"), campaign_id=1)
+    buildings = extract_buildings(cloud, traj, fps, FacadeParams().updated(plane_method="region"), campaign_id=1)
     f = buildings[0].facades[0]
     assert abs(float(f.frame.normal @ (truth["wall_point"] - f.frame.origin))) < 0.01
 
@@ -508,7 +508,7 @@ def test_params_validation_and_config_section():
 
     assert FacadeParams.section == "facade"
     p = resolve(FacadeParams, {"facade": {"Ta": 0.8, "cell": 0.05}})
-    assert p.Ta == 0.8 and p.cell == 0.05
+    assert p.openings.Ta == 0.8 and p.layers.cell == 0.05
     with pytest.raises(ConfigError):
         resolve(FacadeParams, {"facade": {"Ta": 1.5}})
     with pytest.raises(ConfigError):

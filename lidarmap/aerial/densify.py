@@ -40,6 +40,7 @@ import dataclasses
 import math
 import time
 import typing
+from typing import ClassVar
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -51,6 +52,7 @@ from lidarmap.aerial.surface import (
     local_spacing,
     seed_planes,
 )
+from lidarmap.config import check_params
 from lidarmap.errors import ConfigError, InputError
 from lidarmap.frame import LocalFrame
 
@@ -106,6 +108,24 @@ class DensifyParams:
     """
 
     section = "densify"
+    constraints: ClassVar[dict[str, str]] = {
+        "ratio": ">= 0",
+        "distribution": "in uniform, proportional",
+        "max_new_per_point": ">= 0",
+        "density_k": ">= 0",
+        "max_leaf": ">= 0",
+        "min_leaf": ">= 0",
+        "halo": ">= 0",
+        "upsampler": "in geometric, learned",
+        "neighbours": ">= 0",
+        "gap_factor": ">= 0",
+        "plane_tolerance": ">= 0",
+        "max_plane_rms": ">= 0",
+        "outlier_k": ">= 0",
+        "outlier_std": ">= 0",
+        "colour_k": ">= 0",
+        "colour_power": ">= 0",
+    }
 
     ratio: float = 2.0
     distribution: str = "uniform"
@@ -126,6 +146,7 @@ class DensifyParams:
     colour_power: float = 2.0
 
     def __post_init__(self) -> None:
+        check_params(self)
         checks = [
             (math.isfinite(self.ratio) and 1.0 <= self.ratio <= 64.0, "ratio must be in [1, 64]"),
             (self.distribution in DISTRIBUTIONS, f"distribution must be one of {', '.join(DISTRIBUTIONS)}"),

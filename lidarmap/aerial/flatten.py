@@ -64,12 +64,14 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable
+from typing import ClassVar
 
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from lidarmap.config import check_params
 from lidarmap.errors import InputError
 
 __all__ = ["FlattenParams", "Plane", "FlattenResult", "METHODS", "detect_planes", "regularise_planes", "flatten",
@@ -135,6 +137,25 @@ class FlattenParams:
     """
 
     section = "flatten"
+    constraints: ClassVar[dict[str, str]] = {
+        "method": "in region, paper",
+        "distance": ">= 0",
+        "min_points": ">= 0",
+        "normal_k": ">= 0",
+        "local_rms": ">= 0",
+        "angle_deg": ">= 0",
+        "merge_angle_deg": ">= 0",
+        "detect_voxel": ">= 0",
+        "detect_max_points": ">= 0",
+        "ransac_gap": ">= 0",
+        "paper_k_growth": ">= 0",
+        "paper_min_inliers": ">= 0",
+        "ransac_iterations": ">= 0",
+        "vertical_tol_deg": ">= 0",
+        "horizontal_tol_deg": ">= 0",
+        "axis_snap_deg": ">= 0",
+        "snap_max_loss": ">= 0",
+    }
 
     method: str = "region"
     distance: float = 0.08
@@ -158,6 +179,7 @@ class FlattenParams:
     snap_max_loss: float = 0.05
 
     def __post_init__(self) -> None:
+        check_params(self)
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {', '.join(METHODS)}, not {self.method!r}")
         for name in ("distance", "local_rms", "detect_voxel", "ransac_gap"):

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import ClassVar
 
 import numpy as np
 import shapely
@@ -45,6 +46,7 @@ from shapely.geometry.base import BaseGeometry
 from shapely.geometry.polygon import orient
 
 from lidarmap.aerial.voxel import fill_columns
+from lidarmap.config import check_params
 from lidarmap.core import CUBE_CORNERS, CUBE_QUADS, VoxelGrid
 from lidarmap.errors import ConfigError, InputError
 
@@ -80,6 +82,15 @@ class MeshParams:
     """
 
     section = "mesh"
+    constraints: ClassVar[dict[str, str]] = {
+        "voxel_fill": "in columns, none",
+        "fill_gaps": ">= 0",
+        "cell": ">= 0",
+        "top_cell": ">= 0",
+        "max_roof_slope": ">= 0",
+        "concave_ratio": ">= 0",
+        "simplify": ">= 0",
+    }
 
     voxel_fill: str = "columns"
     fill_gaps: float = 1.0
@@ -90,6 +101,7 @@ class MeshParams:
     simplify: float = 0.25
 
     def __post_init__(self) -> None:
+        check_params(self)
         checks = [
             (self.voxel_fill in ("columns", "none"),
              f"voxel_fill must be 'columns' or 'none', got {self.voxel_fill!r}"),

@@ -28,18 +28,17 @@ building whose task fails is reported in ``summary.json`` (``failed``: id -> rea
 
 from __future__ import annotations
 
-from lidarmap.executor import building_seed, group_by_cell
-
 import dataclasses
 import hashlib
 import json
+import logging
 import math
 import shutil
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import trimesh
@@ -57,9 +56,16 @@ from lidarmap.aerial.prep import (
     spool_chunks,
 )
 from lidarmap.aerial.voxel import VoxelParams, voxelize
+from lidarmap.config import check_params
 from lidarmap.core import Footprints, PointCloud, VoxelGrid
 from lidarmap.errors import ConfigError, InputError
-from lidarmap.executor import TaskFailure, map_tasks, run_task
+from lidarmap.executor import (
+    TaskFailure,
+    building_seed,
+    group_by_cell,
+    map_tasks,
+    run_task,
+)
 from lidarmap.io.atomic import atomic_dir, write_text_atomic
 from lidarmap.io.las import write_las
 from lidarmap.io.meshfile import write_mesh
@@ -68,6 +74,8 @@ from lidarmap.io.tiles import read_tiles, scan_tiles
 from lidarmap.io.voxels import write_vox, write_voxels
 from lidarmap.segment.features import BUILDING_CLASS
 from lidarmap.segment.predict import PredictParams, apply_classes, predict
+
+log = logging.getLogger(__name__)
 
 __all__ = ["RunParams", "PipelineConfig", "BuildingOutput", "RunResult", "process_building", "run_pipeline",
            "segment_group", "group_task", "GroupJob", "building_groups", "NOISE_CLASS", "STAGES"]
@@ -111,6 +119,16 @@ class RunParams:
     """
 
     section = "run"
+    constraints: ClassVar[dict[str, str]] = {
+        "method": "in pointnet2, baseline",
+        "min_points": ">= 0",
+        "mesh": "in surface, voxels",
+        "mesh_voxel_size": ">= 0",
+        "group_size": ">= 0",
+        "context": ">= 0",
+        "workers": ">= 0",
+        "seed": ">= 0",
+    }
 
     stages: tuple[str, ...] = ("densify", "flatten")
     method: str = "pointnet2"
@@ -126,6 +144,7 @@ class RunParams:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        check_params(self)
         stages = tuple(self.stages)
         object.__setattr__(self, "stages", stages)
         unknown = [s for s in stages if s not in STAGES]
@@ -571,6 +590,7 @@ def run_pipeline(tiles: Sequence[str | Path], footprints: Footprints, out_dir: s
                     continue
                 if isinstance(result, TaskFailure):
                     failed[spooled.entries[k].id] = result.reason
+                    log.warning("building %s failed: %s", spooled.entries[k].id, result.reason)
                 else:
                     plan["records"][k] = write_building(out, result, fingerprint, run.mesh)
                     processed.append(result.id)

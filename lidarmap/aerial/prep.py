@@ -31,13 +31,14 @@ import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import shapely
 from pyproj import CRS
 from shapely.geometry.base import BaseGeometry
 
+from lidarmap.config import check_params
 from lidarmap.core import Footprints, PointCloud
 from lidarmap.errors import ConfigError
 from lidarmap.frame import LocalFrame
@@ -95,6 +96,16 @@ class PrepParams:
     """
 
     section = "prep"
+    constraints: ClassVar[dict[str, str]] = {
+        "buffer": ">= 0",
+        "min_height": ">= 0",
+        "roof_percentile": ">= 0",
+        "ground_class": ">= 0",
+        "ground_radius": ">= 0",
+        "ground_percentile": ">= 0",
+        "rotation_deg": ">= 0",
+        "chunk_points": ">= 0",
+    }
 
     buffer: float = 5.0
     id_field: str = "id"
@@ -112,6 +123,7 @@ class PrepParams:
     chunk_points: int = 1_000_000
 
     def __post_init__(self) -> None:
+        check_params(self)
         checks = [
             (math.isfinite(self.buffer) and self.buffer >= 0, "buffer must be a finite number >= 0"),
             (math.isfinite(self.min_height), "min_height must be finite"),

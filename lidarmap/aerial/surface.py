@@ -1,4 +1,5 @@
-"""TODO docstring."""
+"""Local surface geometry of a point set: k nearest neighbours, sample spacing, local planes (PCA) and the points on
+flat local surfaces. Shared by the geometric and the learned upsampler."""
 
 from __future__ import annotations
 

@@ -27,12 +27,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from pyproj import CRS
 from scipy import ndimage
 
+from lidarmap.config import check_params
 from lidarmap.core import VoxelGrid
 from lidarmap.errors import ConfigError, InputError
 
@@ -59,6 +60,10 @@ class VoxelParams:
     """
 
     section = "voxel"
+    constraints: ClassVar[dict[str, str]] = {
+        "size": ">= 0",
+        "min_points": ">= 0",
+    }
 
     size: float = 1.0
     min_points: int = 1
@@ -66,6 +71,7 @@ class VoxelParams:
     colour_majority_only: bool = True
 
     def __post_init__(self) -> None:
+        check_params(self)
         if not (isinstance(self.size, (int, float)) and math.isfinite(self.size) and self.size > 0):
             raise ConfigError(f"voxel parameters: size must be a finite number > 0, got {self.size!r}")
         if not (isinstance(self.min_points, int) and self.min_points >= 1):

@@ -17,7 +17,6 @@ Heavy modules are imported inside the commands so that ``lidarmap --help`` stays
 
 from __future__ import annotations
 
-
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Optional
 
@@ -39,7 +38,6 @@ from lidarmap.errors import ConfigError, InputError
 
 if TYPE_CHECKING:
     from lidarmap.map.apply import UpdateResult
-
     from lidarmap.map.model import BuildingMap
 
 map_app = typer.Typer(name="map", no_args_is_help=True, add_completion=False,

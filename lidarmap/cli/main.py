@@ -38,18 +38,29 @@ for _name in COMMAND_MODULES:
     _module.register(app)
 
 
+class _Never(Exception):
+    """Stands for an exception class the installed click does not have (never raised)."""
+
+
+def _click_exceptions():
+    """click's exception module: recent typer releases vendor click (``typer._click``), older ones depend on it."""
+    try:
+        from typer._click import exceptions
+    except ImportError:  # typer before the vendored click
+        from click import exceptions
+    return exceptions
+
+
 def main() -> None:
     """Console-script entry point: usage errors are one line too (no rich box, no traceback)."""
     import os
     import sys
 
-    from typer._click import (
-        exceptions as click_exc,  # typer vendors click; its errors live here
-    )
+    click_exc = _click_exceptions()
 
     try:
         code = app(standalone_mode=False)  # returns the exit code of a typer.Exit raised inside a command
-    except click_exc.NoArgsIsHelpError as exc:
+    except getattr(click_exc, "NoArgsIsHelpError", _Never) as exc:
         typer.echo(exc.ctx.get_help() if exc.ctx else "see 'lidarmap --help'")
         sys.exit(0)
     except click_exc.UsageError as exc:

@@ -1,4 +1,5 @@
-"""TODO docstring."""
+"""One campaign's points as the façade steps need them: file order, sensor positions from the trajectory (GPS
+time), ground/building flags, the footprint join and a coarse xy index."""
 
 from __future__ import annotations
 
@@ -57,11 +58,11 @@ def campaign_data(xyz: np.ndarray, gps: np.ndarray, ground: np.ndarray, building
     sensors = np.full((len(xyz), 3), np.nan)
     sensors[nonground] = trajectory.position_at(gps[nonground])  # InputError when the trajectory misses them
     camp = CampaignData(xyz=xyz, sensors=sensors, ground=ground, building=building,
-                        nonground_index=_XYIndex(xyz[nonground, :2], params.index_bin, origin),
+                        nonground_index=_XYIndex(xyz[nonground, :2], params.occlusion.index_bin, origin),
                         nonground_ids=nonground, limits=limits, track=track, source=source)
     ground_ids = np.flatnonzero(ground)
     if len(ground_ids):
-        camp.ground_index, camp.ground_ids = _XYIndex(xyz[ground_ids, :2], params.index_bin, origin), ground_ids
+        camp.ground_index, camp.ground_ids = _XYIndex(xyz[ground_ids, :2], params.occlusion.index_bin, origin), ground_ids
     return camp
 
 
@@ -87,10 +88,10 @@ def prepare_campaign(points: PointCloud, trajectory: Trajectory, params: FacadeP
     classification = points.attrs.get("classification")
     gps = np.asarray(points.attrs["gps_time"], dtype=np.float64)
     stats_pass.add(points.xyz, gps, classification, index)
-    stats = stats_pass.finish(params.reach_quantile)
+    stats = stats_pass.finish(params.occlusion.reach_quantile)
     ground, building = classes.masks(points.xyz, classification)
     camp = campaign_data(points.xyz, gps, ground, building, trajectory, stats.limits,
-                         campaign_track(trajectory, *stats.t_span, params.reach_step), origin, params, points.source)
+                         campaign_track(trajectory, *stats.t_span, params.occlusion.reach_step), origin, params, points.source)
     tm["prepare"] = tm.get("prepare", 0.0) + time.perf_counter() - clock
     return camp
 
@@ -113,7 +114,7 @@ def join_campaign(camp: CampaignData, footprints: Footprints, params: FacadePara
     """
     xyz = camp.xyz
     cand = np.flatnonzero(camp.building)
-    bidx, _ = join_footprints(xyz[cand, :2], footprints, params.max_footprint_distance, params.join_quantum)
+    bidx, _ = join_footprints(xyz[cand, :2], footprints, params.join.max_footprint_distance, params.join.join_quantum)
     if not np.any(bidx >= 0):
         lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
         raise no_join_error(len(cand), (lo[0], lo[1], hi[0], hi[1]), footprints, params)
@@ -132,7 +133,7 @@ def no_join_error(n_building: int, points_bounds: tuple[float, float, float, flo
     px0, py0, px1, py1 = points_bounds
     fx0, fy0, fx1, fy1 = footprints.bounds
     return InputError(
-        f"none of the {n_building} building points lies within {params.max_footprint_distance:g} m of a "
+        f"none of the {n_building} building points lies within {params.join.max_footprint_distance:g} m of a "
         f"footprint (points bbox [{px0:.1f}, {py0:.1f}, {px1:.1f}, {py1:.1f}], footprints bbox "
         f"[{fx0:.1f}, {fy0:.1f}, {fx1:.1f}, {fy1:.1f}]): wrong footprints file or CRS?", footprints.source)
 

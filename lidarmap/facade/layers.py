@@ -103,13 +103,13 @@ def fit_layers(depths: np.ndarray, params: "FacadeParams", seed: int = 0) -> lis
     if len(d) == 0:
         return []
     rng = np.random.default_rng(seed)
-    sample = d if len(d) <= params.gmm_max_samples else rng.choice(d, size=params.gmm_max_samples, replace=False)
+    sample = d if len(d) <= params.layers.gmm_max_samples else rng.choice(d, size=params.layers.gmm_max_samples, replace=False)
     x = sample[:, None]
     best, best_bic = None, np.inf
-    max_k = int(max(1, min(params.gmm_max_components, len(np.unique(sample)))))
+    max_k = int(max(1, min(params.layers.gmm_max_components, len(np.unique(sample)))))
     for k in range(1, max_k + 1):
-        gmm = GaussianMixture(n_components=k, covariance_type="full", random_state=seed, n_init=params.gmm_n_init,
-                              reg_covar=params.gmm_reg_var, max_iter=200, init_params="k-means++")
+        gmm = GaussianMixture(n_components=k, covariance_type="full", random_state=seed, n_init=params.layers.gmm_n_init,
+                              reg_covar=params.layers.gmm_reg_var, max_iter=200, init_params="k-means++")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
             gmm.fit(x)
@@ -119,9 +119,9 @@ def fit_layers(depths: np.ndarray, params: "FacadeParams", seed: int = 0) -> lis
     assert best is not None
     comps = [[float(w), float(m), float(v)] for w, m, v in
              zip(best.weights_, best.means_.ravel(), best.covariances_.ravel())]
-    comps = _merge_components(comps, params.min_layer_separation)
+    comps = _merge_components(comps, params.layers.min_layer_separation)
     total = sum(w for w, _, _ in comps)
-    comps = [c for c in comps if c[0] / total >= params.gmm_min_weight] or [max(comps, key=lambda c: c[0])]
+    comps = [c for c in comps if c[0] / total >= params.layers.gmm_min_weight] or [max(comps, key=lambda c: c[0])]
     total = sum(w for w, _, _ in comps)
     comps.sort(key=lambda c: c[1])
     layers = [Layer(layer_id=i, mu=m, sigma=math.sqrt(max(v, 1e-12)), weight=w / total)

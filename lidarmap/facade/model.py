@@ -1,4 +1,7 @@
-"""TODO docstring."""
+"""The façade's data types: its frame (s, t, d coordinates, CONTRIBUTING.md), depth layers, elements (windows,
+doors, structures, unknown regions) with their uncertainty, and the evidence grids that later campaigns fuse.
+
+An observation (``lidarmap.facade.observe``) produces them; the map (``lidarmap.map``) stores and refines them."""
 
 from __future__ import annotations
 

@@ -111,7 +111,7 @@ def layer_fit(std: np.ndarray, cell: float, params: FacadeParams, rng: np.random
                seed: int) -> list[Layer]:
     """GMM layers over a density-equalised sample of façade points (at most gmm_points_per_cell per grid cell)."""
     keys = np.floor(std[:, 0] / cell).astype(np.int64) * 1_000_003 + np.floor(std[:, 1] / cell).astype(np.int64)
-    sample = _equalised_sample(keys, params.gmm_points_per_cell, params.gmm_max_samples, rng)
+    sample = _equalised_sample(keys, params.layers.gmm_points_per_cell, params.layers.gmm_max_samples, rng)
     return fit_layers(std[sample, 2], params, seed=seed)
 
 
@@ -133,12 +133,12 @@ def value_grid(observed: np.ndarray, occluded: np.ndarray, through: np.ndarray) 
 
 def detect_facade_groups(xyz: np.ndarray, params: FacadeParams, rng: np.random.Generator) -> list[PlaneGroup]:
     """Vertical planes of one building's points (voxel-subsampled), grouped into façades."""
-    det = voxel_subsample(xyz, params.detect_voxel, params.detect_max_points, rng)
+    det = voxel_subsample(xyz, params.planes.detect_voxel, params.planes.detect_max_points, rng)
     det_xyz = xyz[det]
-    if len(det_xyz) < params.min_facade_points:
+    if len(det_xyz) < params.planes.min_facade_points:
         return []
-    normals, nbrs = estimate_normals(det_xyz, params.normal_k)
-    if params.plane_method == "region":
+    normals, nbrs = estimate_normals(det_xyz, params.planes.normal_k)
+    if params.planes.plane_method == "region":
         planes = region_growing_vertical_planes(det_xyz, normals, nbrs, params)
     else:
         planes = ransac_vertical_planes(det_xyz, normals, params, rng)
@@ -152,7 +152,7 @@ def building_facades(camp: CampaignData, ids: np.ndarray, polygon, params: Facad
     rng = rng if rng is not None else np.random.default_rng(seed)
     clock = time.perf_counter()
     xyz_b = camp.xyz[ids]
-    near = boundary_distance(xyz_b[:, :2], polygon, params.join_quantum) <= params.max_footprint_distance
+    near = boundary_distance(xyz_b[:, :2], polygon, params.join.join_quantum) <= params.join.max_footprint_distance
     ids, xyz_b = ids[near], xyz_b[near]
     groups = detect_facade_groups(xyz_b, params, rng)
     tm["planes"] = tm.get("planes", 0.0) + time.perf_counter() - clock
@@ -165,15 +165,15 @@ def building_facades(camp: CampaignData, ids: np.ndarray, polygon, params: Facad
     for g_i, g in enumerate(groups):
         d = g.plane.distance(xy)
         s = g.plane.along(xy)
-        ok = (d >= g.d_min - params.layer_back) & (d <= g.d_max + params.layer_front)
-        ok &= (s >= g.s_min - params.facade_margin) & (s <= g.s_max + params.facade_margin)
+        ok = (d >= g.d_min - params.layers.layer_back) & (d <= g.d_max + params.layers.layer_front)
+        ok &= (s >= g.s_min - params.planes.facade_margin) & (s <= g.s_max + params.planes.facade_margin)
         closer = ok & (np.abs(d) < best_d)
         best[closer] = g_i
         best_d[closer] = np.abs(d[closer])
     facades: list[Facade] = []
     for g_i, g in enumerate(groups):
         members = ids[best == g_i]
-        if len(members) < params.min_facade_points:
+        if len(members) < params.planes.min_facade_points:
             continue
         facade = extract_facade(camp, members, g, polygon, params, campaign_id, seed * 31 + g_i, tm)
         if facade is not None:
@@ -206,20 +206,20 @@ def extract_facade(camp: CampaignData, member_ids: np.ndarray, group: PlaneGroup
     rng = np.random.default_rng(seed)
     xyz = camp.xyz[member_ids]
     sensors = camp.sensors[member_ids]
-    cell = params.cell
+    cell = params.layers.cell
     n2 = group.plane.normal
     frame = FacadeFrame(origin=np.array([*(-group.plane.c * n2), 0.0]), u=np.array([-n2[1], n2[0], 0.0]))
     frame = _orient(frame, polygon, xyz, sensors, params)
     std = frame.to_facade(xyz)
-    lo, hi = group.d_min - params.layer_back, group.d_max + params.layer_front
+    lo, hi = group.d_min - params.layers.layer_back, group.d_max + params.layers.layer_front
     if frame.normal[:2] @ n2 < 0:  # flipped: depths of the members flip too
-        lo, hi = -group.d_max - params.layer_back, -group.d_min + params.layer_front
+        lo, hi = -group.d_max - params.layers.layer_back, -group.d_min + params.layers.layer_front
     keep = (std[:, 2] >= lo) & (std[:, 2] <= hi)
-    for _ in range(max(1, params.refine_iterations)):
-        if keep.sum() < params.min_facade_points:
+    for _ in range(max(1, params.layers.refine_iterations)):
+        if keep.sum() < params.planes.min_facade_points:
             return None
         main = _main_layer(layer_fit(std[keep], cell, params, rng, seed))
-        inl = keep & (np.abs(std[:, 2] - main.mu) <= params.sigma_k * main.sigma)
+        inl = keep & (np.abs(std[:, 2] - main.mu) <= params.layers.sigma_k * main.sigma)
         if inl.sum() < 3:
             return None
         normal2, c = fit_line_2d(xyz[inl, :2])  # PCA: smallest eigenvector of the inliers, horizontal
@@ -227,22 +227,22 @@ def extract_facade(camp: CampaignData, member_ids: np.ndarray, group: PlaneGroup
             normal2, c = -normal2, -c
         frame = FacadeFrame(origin=np.array([*(-c * normal2), 0.0]), u=np.array([-normal2[1], normal2[0], 0.0]))
         std = frame.to_facade(xyz)
-        keep = (std[:, 2] >= -params.layer_back) & (std[:, 2] <= params.layer_front)
-    if keep.sum() < params.min_facade_points:
+        keep = (std[:, 2] >= -params.layers.layer_back) & (std[:, 2] <= params.layers.layer_front)
+    if keep.sum() < params.planes.min_facade_points:
         return None
     layers = layer_fit(std[keep], cell, params, rng, seed)
     main = _main_layer(layers)
-    on_main = keep & (assign_layers(std[:, 2], layers, params.sigma_k) == layers.index(main))
-    if on_main.sum() < params.min_facade_points:
+    on_main = keep & (assign_layers(std[:, 2], layers, params.layers.sigma_k) == layers.index(main))
+    if on_main.sum() < params.planes.min_facade_points:
         return None
     # the frame: d = 0 on the main layer, origin at the bottom-left of its points (robust quantiles)
     s_lo, s_hi = np.quantile(std[on_main, 0], [0.001, 0.999])
     t_lo = float(np.quantile(std[on_main, 1], 0.001))
-    on_any = keep & (assign_layers(std[:, 2], layers, params.sigma_k) >= 0)
+    on_any = keep & (assign_layers(std[:, 2], layers, params.layers.sigma_k) >= 0)
     t_hi = float(np.quantile(std[on_any, 1], 0.999))
     frame = FacadeFrame(origin=frame.to_crs(np.array([[s_lo, t_lo, main.mu]]))[0], u=frame.u)
     length, height = float(s_hi - s_lo), float(t_hi - t_lo)
-    if length < params.min_facade_length or height <= cell:
+    if length < params.planes.min_facade_length or height <= cell:
         return None
     for la in layers:
         la.mu -= main.mu
@@ -267,27 +267,27 @@ def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, 
     tm = tm if tm is not None else {}
     clock = time.perf_counter()
     rng = np.random.default_rng(seed + 7)
-    cell = params.cell
+    cell = params.layers.cell
     s0, s1, t0, t1 = (float(v) for v in extent)
-    margin = params.facade_margin
+    margin = params.planes.facade_margin
     if member_ids is None:
-        corners = frame.to_crs(np.array([[s0 - margin, 0, -params.layer_back], [s1 + margin, 0, -params.layer_back],
-                                         [s0 - margin, 0, params.layer_front], [s1 + margin, 0, params.layer_front]]))
+        corners = frame.to_crs(np.array([[s0 - margin, 0, -params.layers.layer_back], [s1 + margin, 0, -params.layers.layer_back],
+                                         [s0 - margin, 0, params.layers.layer_front], [s1 + margin, 0, params.layers.layer_front]]))
         x0, y0 = corners[:, :2].min(axis=0)
         x1, y1 = corners[:, :2].max(axis=0)
         ids = camp.nonground_ids[camp.nonground_index.query_box(x0, y0, x1, y1)]
         ids = ids[camp.building[ids]]
         std = frame.to_facade(camp.xyz[ids])
-        ok = (std[:, 2] >= -params.layer_back) & (std[:, 2] <= params.layer_front)
+        ok = (std[:, 2] >= -params.layers.layer_back) & (std[:, 2] <= params.layers.layer_front)
         ok &= (std[:, 0] >= s0 - margin) & (std[:, 0] <= s1 + margin) & (std[:, 1] >= t0 - 1.0)
         ok &= std[:, 1] <= t1 + 1.0
         member_ids = ids[ok]
     xyz = camp.xyz[member_ids]
     sensors = camp.sensors[member_ids]
     std = frame.to_facade(xyz)
-    keep = (std[:, 2] >= -params.layer_back) & (std[:, 2] <= params.layer_front)
+    keep = (std[:, 2] >= -params.layers.layer_back) & (std[:, 2] <= params.layers.layer_front)
     keep &= (std[:, 0] >= s0 - margin) & (std[:, 0] <= s1 + margin)
-    if keep.sum() < params.min_facade_points:
+    if keep.sum() < params.planes.min_facade_points:
         return None
     if layers is None:
         layers = layer_fit(std[keep], cell, params, rng, seed)
@@ -295,7 +295,7 @@ def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, 
     main = _main_layer(layers)
     main_idx = layers.index(main)
     labels = np.full(len(std), -1, dtype=np.int64)
-    labels[keep] = assign_layers(std[keep, 2], layers, params.sigma_k)
+    labels[keep] = assign_layers(std[keep, 2], layers, params.layers.sigma_k)
     tm["layers"] = tm.get("layers", 0.0) + time.perf_counter() - clock
 
     clock = time.perf_counter()
@@ -313,33 +313,33 @@ def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, 
     # the cell's surface is its front-most layer with a real share of its points (layers are sorted deepest
     # first): a wall hides what lies behind it in the same cell (room ceilings seen through a window), a balcony
     # hides the wall
-    present = (per_layer >= 2) & (per_layer >= params.layer_cell_share * per_layer.sum(axis=0))
+    present = (per_layer >= 2) & (per_layer >= params.layers.layer_cell_share * per_layer.sum(axis=0))
     present[main_idx] = per_layer[main_idx] >= 2  # any real wall sample hides what is behind it
     front_most = len(layers) - 1 - np.argmax(present[::-1], axis=0)
     dominant = np.where(present.any(axis=0), front_most, np.where(count.ravel() > 0, np.argmax(per_layer, axis=0),
                                                                    -1)).reshape(shape)
     observed_raw = count > 0
-    observed = close_sampling_gaps(count, cell, params.close_cells, params.max_close_cells)
+    observed = close_sampling_gaps(count, cell, params.objects.close_cells, params.objects.max_close_cells)
 
     # points around the façade (any class): occluders in front, seen-through points behind
     front = sensors @ frame.normal - frame.normal @ frame.origin
-    front_dist = float(min(np.nanquantile(front, 0.99) + 1.0, camp.limits[0] * params.reach_margin + 1.0))
+    front_dist = float(min(np.nanquantile(front, 0.99) + 1.0, camp.limits[0] * params.occlusion.reach_margin + 1.0))
     corners = frame.to_crs(np.array([[s0, 0, front_dist], [s1, 0, front_dist],
-                                     [s0, 0, -params.through_max_depth], [s1, 0, -params.through_max_depth]]))
+                                     [s0, 0, -params.occlusion.through_max_depth], [s1, 0, -params.occlusion.through_max_depth]]))
     x0, y0 = corners[:, :2].min(axis=0) - 1.0
     x1, y1 = corners[:, :2].max(axis=0) + 1.0
     around = camp.nonground_ids[camp.nonground_index.query_box(x0, y0, x1, y1)]
     a_std = frame.to_facade(camp.xyz[around])
     a_sens = frame.to_facade(camp.sensors[around])
-    fg = (a_std[:, 2] > params.occluder_min_depth) & (a_std[:, 2] < a_sens[:, 2])
+    fg = (a_std[:, 2] > params.occlusion.occluder_min_depth) & (a_std[:, 2] < a_sens[:, 2])
     fg_spacing = sample_spacing(a_std[fg], rng=rng) if fg.any() else 0.0
     occluded = occlusion_mask(a_std[fg], a_sens[fg], shape, s0, t0, cell, params, spacing=fg_spacing)
-    behind = a_std[:, 2] < -params.layer_back
+    behind = a_std[:, 2] < -params.layers.layer_back
     through = through_cells(a_std[behind], a_sens[behind], shape, s0, t0, cell) > 0
     reachable = reach_mask(frame.to_facade(camp.track), shape, s0, t0, cell, camp.limits, params)
     observed &= ~(through & ~observed_raw)
-    if params.occlusion_grow_cells > 0:
-        grow = square(params.occlusion_grow_cells)
+    if params.openings.occlusion_grow_cells > 0:
+        grow = square(params.openings.occlusion_grow_cells)
         occluded = occluded | (ndimage.binary_dilation(occluded, structure=grow) & ~observed & ~through)
     ground_t = _ground_line(camp, frame, s0, s1, t0, cols, cell, params)
     # the ground is never above the lowest wall measured in a column
@@ -353,8 +353,8 @@ def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, 
     clock = time.perf_counter()
     elements: list[Element] = []
     window_votes = np.zeros(shape, dtype=np.int32)
-    min_cells = max(1, int(math.ceil(params.min_object_area / (cell * cell))))
-    min_width = max(1, int(round(params.min_object_width / cell)))
+    min_cells = max(1, int(math.ceil(params.objects.min_object_area / (cell * cell))))
+    min_width = max(1, int(round(params.objects.min_object_width / cell)))
     g_inside = labels >= 0
     pts_row = np.full(len(std), -1, dtype=np.int64)
     pts_col = np.full(len(std), -1, dtype=np.int64)
@@ -367,9 +367,9 @@ def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, 
 
     for li, layer in enumerate(layers):
         offset = layer.mu - main.mu
-        if li == main_idx or abs(offset) <= params.structure_min_offset:
+        if li == main_idx or abs(offset) <= params.layers.structure_min_offset:
             continue
-        comp, n = grow_regions(dominant == li, params.close_cells, min_cells, min_width)
+        comp, n = grow_regions(dominant == li, params.objects.close_cells, min_cells, min_width)
         for k in range(1, n + 1):
             cmask = comp == k
             sel = (labels == li) & (pts_row >= 0)
@@ -383,16 +383,16 @@ def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, 
                 r_lo, r_hi, c_lo, c_hi = rr.min(), rr.max() + 1, cc.min(), cc.max() + 1
                 width, h = (c_hi - c_lo) * cell, (r_hi - r_lo) * cell
                 fill = cmask.sum() / float((r_hi - r_lo) * (c_hi - c_lo))
-                on_ground = t0 + r_lo * cell <= float(np.mean(ground_t[c_lo:c_hi])) + params.door_bottom_tol
+                on_ground = t0 + r_lo * cell <= float(np.mean(ground_t[c_lo:c_hi])) + params.openings.door_bottom_tol
                 depths = std[sel, 2]
                 spread = 1.4826 * float(np.median(np.abs(depths - np.median(depths))))  # robust σ of the object
-                opening = fill >= params.Ta and min(width, h) >= params.min_opening_size \
-                    and width * h <= params.max_opening_area and spread <= params.surface_max_sigma
-                if opening and on_ground and h >= params.door_min_height and width <= params.door_max_width:
+                opening = fill >= params.openings.Ta and min(width, h) >= params.openings.min_opening_size \
+                    and width * h <= params.openings.max_opening_area and spread <= params.layers.surface_max_sigma
+                if opening and on_ground and h >= params.openings.door_min_height and width <= params.openings.door_max_width:
                     kind = ElementKind.DOOR
-                elif opening and params.recessed_windows and not (on_ground and h >= params.door_min_height):
+                elif opening and params.openings.recessed_windows and not (on_ground and h >= params.openings.door_min_height):
                     kind = ElementKind.WINDOW
-                elif spread > params.surface_max_sigma:
+                elif spread > params.layers.surface_max_sigma:
                     continue  # recessed clutter (reveals, mixed cells, interiors seen through glass): no surface
                 if kind is not ElementKind.STRUCTURE:
                     vals = np.where(cmask, HOLE, np.where(values == OCCLUDED, OCCLUDED, OBJECT))
@@ -402,9 +402,9 @@ def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, 
                     door_cells |= cmask
             if poly is None:
                 st = std[sel, :2]
-                if len(st) > params.max_outline_points:
-                    st = st[rng.choice(len(st), size=params.max_outline_points, replace=False)]
-                poly = outline_polygon(st, cell, params.concave_ratio)
+                if len(st) > params.objects.max_outline_points:
+                    st = st[rng.choice(len(st), size=params.objects.max_outline_points, replace=False)]
+                poly = outline_polygon(st, cell, params.objects.concave_ratio)
             if poly is not None:
                 add(kind, poly, layer.layer_id, unc, int(sel.sum()))
     window_votes[door_cells] = 1
@@ -412,7 +412,7 @@ def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, 
 
     wall_st = std[labels == main_idx, :2]
     openings = detect_openings(values, cell, params, ground_t=ground_t, t0=t0, s0=s0, wall_st=wall_st)
-    if params.complete_by_repetition:
+    if params.openings.complete_by_repetition:
         complete_by_repetition(openings, values, s0, t0, cell, params)
     for op in openings:
         if op.kind in (ElementKind.WINDOW, ElementKind.DOOR) and op.bounds is not None:
@@ -424,7 +424,7 @@ def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, 
             window_votes[op.mask] = 1
         for poly in mask_to_polygons(op.mask, s0, t0, cell):
             add(ElementKind.UNKNOWN, poly, None, math.inf)
-    min_unknown = max(1, int(math.ceil(params.min_unknown_area / (cell * cell))))
+    min_unknown = max(1, int(math.ceil(params.openings.min_unknown_area / (cell * cell))))
     occ_comp, n_occ = grow_regions((values == OCCLUDED) & ~below, 0, min_unknown)
     for k in range(1, n_occ + 1):
         for poly in mask_to_polygons(occ_comp == k, s0, t0, cell):
@@ -451,7 +451,7 @@ def _ground_line(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, t
     s_mid = s0 + (np.arange(cols) + 0.5) * cell
     if camp.ground_index is None:
         return np.full(cols, t0)
-    band = params.ground_band
+    band = params.openings.ground_band
     corners = frame.to_crs(np.array([[s0, 0, 0.0], [s1, 0, 0.0], [s0, 0, band], [s1, 0, band]]))
     x0, y0 = corners[:, :2].min(axis=0)
     x1, y1 = corners[:, :2].max(axis=0)
@@ -460,11 +460,11 @@ def _ground_line(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, t
     g = g[(g[:, 2] > 0.2) & (g[:, 2] < band) & (g[:, 0] >= s0) & (g[:, 0] <= s1)]
     if len(g) < 3:
         return np.full(cols, t0)
-    bins = np.floor((g[:, 0] - s0) / params.ground_bin).astype(np.int64)
+    bins = np.floor((g[:, 0] - s0) / params.openings.ground_bin).astype(np.int64)
     order = np.argsort(bins, kind="stable")
     uniq, start = np.unique(bins[order], return_index=True)
     low = np.array([np.quantile(g[order[a:b], 1], 0.2) for a, b in zip(start, np.append(start[1:], len(order)))])
     if len(low) >= 3:  # a bin of mislabelled points (a car hid the street) must not lift the ground
         padded = np.concatenate([low[:1], low, low[-1:]])
         low = np.median(np.stack([padded[:-2], padded[1:-1], padded[2:]]), axis=0)
-    return np.interp(s_mid, s0 + (uniq + 0.5) * params.ground_bin, low)
+    return np.interp(s_mid, s0 + (uniq + 0.5) * params.openings.ground_bin, low)

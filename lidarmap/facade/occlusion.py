@@ -65,8 +65,8 @@ def occlusion_mask(points_std: np.ndarray, sensors_std: np.ndarray, shape: tuple
         return mask
     s, t, lam = project_rays(points_std, sensors_std)
     ok = np.isfinite(lam) & (lam >= 1.0)
-    r0 = max(params.occluder_radius, 0.5 * (spacing or 0.0))
-    radius_cells = np.clip(np.round(lam * r0 / cell), 0, params.occluder_max_radius_cells).astype(np.int64)
+    r0 = max(params.occlusion.occluder_radius, 0.5 * (spacing or 0.0))
+    radius_cells = np.clip(np.round(lam * r0 / cell), 0, params.occlusion.occluder_max_radius_cells).astype(np.int64)
     row, col = cell_index(s, t, cell, s0, t0, shape)
     ok &= row >= 0
     for r in np.unique(radius_cells[ok]):
@@ -76,8 +76,8 @@ def occlusion_mask(points_std: np.ndarray, sensors_std: np.ndarray, shape: tuple
         if r > 0:
             hits = ndimage.binary_dilation(hits, structure=square(int(r)))
         mask |= hits
-    if params.occlusion_close_cells > 0:
-        k = params.occlusion_close_cells
+    if params.occlusion.occlusion_close_cells > 0:
+        k = params.occlusion.occlusion_close_cells
         mask = ndimage.binary_closing(np.pad(mask, k), structure=square(k))[k:-k, k:-k] | mask
     return mask
 
@@ -122,10 +122,10 @@ def reach_mask(sensor_track_std: np.ndarray, shape: tuple[int, int], s0: float, 
     if len(track) == 0:
         return np.zeros(shape, dtype=bool)
     max_range, elev_lo, elev_hi = limits
-    max_range *= params.reach_margin
-    margin = np.radians(params.reach_angle_margin_deg)
+    max_range *= params.occlusion.reach_margin
+    margin = np.radians(params.occlusion.reach_angle_margin_deg)
     sin_lo, sin_hi = np.sin(max(elev_lo - margin, -np.pi / 2)), np.sin(min(elev_hi + margin, np.pi / 2))
-    cos_inc = np.cos(np.radians(params.max_incidence_deg))
+    cos_inc = np.cos(np.radians(params.occlusion.max_incidence_deg))
     s = s0 + (np.arange(cols) + 0.5) * cell
     t = t0 + (np.arange(rows) + 0.5) * cell
     ss, tt = np.meshgrid(s, t)

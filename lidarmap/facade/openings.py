@@ -58,18 +58,18 @@ def hough_positions(hole: np.ndarray, params: "FacadeParams") -> tuple[np.ndarra
     from skimage.feature import canny
     from skimage.transform import hough_line, hough_line_peaks
 
-    edges = canny(hole.astype(float), sigma=params.canny_sigma, low_threshold=0.1, high_threshold=0.3)
+    edges = canny(hole.astype(float), sigma=params.openings.canny_sigma, low_threshold=0.1, high_threshold=0.3)
     if not edges.any():
         return np.zeros(0), np.zeros(0)
-    tilt = np.radians(params.hough_max_tilt_deg)
-    k = max(1, int(params.hough_angle_steps))
+    tilt = np.radians(params.openings.hough_max_tilt_deg)
+    k = max(1, int(params.openings.hough_angle_steps))
     vert = np.linspace(-tilt, tilt, 2 * k + 1)
     horiz = np.pi / 2 + vert
     rows, cols = hole.shape
     result = []
     for thetas, centre in ((vert, rows / 2.0), (horiz, cols / 2.0)):
         acc, angles, dists = hough_line(edges, theta=thetas)
-        _, ang, dist = hough_line_peaks(acc, angles, dists, num_peaks=params.hough_lines, min_distance=2,
+        _, ang, dist = hough_line_peaks(acc, angles, dists, num_peaks=params.openings.hough_lines, min_distance=2,
                                         threshold=max(2.0, 0.2 * acc.max()))
         if thetas is vert:  # x cos θ + y sin θ = dist  ->  x at the patch's middle row
             pos = (dist - centre * np.sin(ang)) / np.cos(ang)
@@ -100,14 +100,14 @@ def fit_rectangle(hole_mask: np.ndarray, values: np.ndarray | None = None,
     if n_hole == 0:
         return (0, 0, 0, 0), math.inf
     rr, cc = np.nonzero(hole)
-    pad = params.hough_offsets + 2
+    pad = params.openings.hough_offsets + 2
     r_lo, r_hi = max(rr.min() - pad, 0), min(rr.max() + 1 + pad, hole.shape[0])
     c_lo, c_hi = max(cc.min() - pad, 0), min(cc.max() + 1 + pad, hole.shape[1])
     patch_hole = hole[r_lo:r_hi, c_lo:c_hi]
     patch_vals = vals[r_lo:r_hi, c_lo:c_hi]
     xs, ys = hough_positions(np.pad(patch_hole, 2), params)
     xs, ys = xs - 2, ys - 2
-    off = np.arange(-params.hough_offsets, params.hough_offsets + 2)
+    off = np.arange(-params.openings.hough_offsets, params.openings.hough_offsets + 2)
     # a line at pixel x may be the boundary at x (left side) or x + 1 (right side): try both plus offsets
     bbox_cols = [cc.min() - c_lo, cc.max() + 1 - c_lo]  # the hole's bounding box is always a candidate
     bbox_rows = [rr.min() - r_lo, rr.max() + 1 - r_lo]
@@ -170,10 +170,10 @@ def hole_regions(values: np.ndarray, params: "FacadeParams") -> tuple[np.ndarray
     """
     values = np.asarray(values)
     hole = values == HOLE
-    if params.hole_open_cells > 0:
-        hole = ndimage.binary_opening(hole, structure=np.ones((2 * params.hole_open_cells + 1,) * 2, bool))
+    if params.openings.hole_open_cells > 0:
+        hole = ndimage.binary_opening(hole, structure=np.ones((2 * params.openings.hole_open_cells + 1,) * 2, bool))
     region = hole
-    k = params.bridge_cells
+    k = params.openings.bridge_cells
     if k > 0 and hole.any():
         closed = ndimage.binary_closing(np.pad(hole, k), structure=np.ones((2 * k + 1,) * 2, bool))[k:-k, k:-k]
         region = hole | (closed & (values == OCCLUDED))
@@ -193,13 +193,13 @@ def refine_bounds(rect: tuple[int, int, int, int], wall_st: np.ndarray | None, s
     ``refine_max_cells`` from its cell edge.
     """
     r0, r1, c0, c1 = rect
-    b = params.edge_bias_cells * cell
+    b = params.openings.edge_bias_cells * cell
     cell_sides = [s0 + c0 * cell, s0 + c1 * cell, t0 + r0 * cell, t0 + r1 * cell]
     out = [cell_sides[0] - b, cell_sides[1] + b, cell_sides[2] - b, cell_sides[3] + b]
-    if wall_st is None or len(wall_st) == 0 or params.refine_max_cells <= 0:
+    if wall_st is None or len(wall_st) == 0 or params.openings.refine_max_cells <= 0:
         return tuple(out)  # type: ignore[return-value]
     st = np.asarray(wall_st, dtype=np.float64)
-    lim = params.refine_max_cells * cell
+    lim = params.openings.refine_max_cells * cell
     reach = lim + 2 * cell
     for k in range(4):
         axis = 0 if k < 2 else 1  # the coordinate across this side
@@ -211,7 +211,7 @@ def refine_bounds(rect: tuple[int, int, int, int], wall_st: np.ndarray | None, s
         sign = -1.0 if k in (0, 2) else 1.0  # the wall lies on this side of the edge
         across = sign * (st[:, axis] - edge)  # > 0: in the wall, < 0: inside the opening
         sel = (across > -lim) & (across < reach) & (st[:, other] > lo_o + cell) & (st[:, other] < hi_o - cell)
-        if np.count_nonzero(sel) < params.refine_min_points:
+        if np.count_nonzero(sel) < params.openings.refine_min_points:
             continue
         a = across[sel]
         bands = np.floor((st[sel, other] - lo_o) / cell).astype(np.int64)
@@ -252,7 +252,7 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         return []
     rows, cols = values.shape
     ground = np.full(cols, t0) if ground_t is None else np.asarray(ground_t, dtype=np.float64)
-    min_cells = params.min_hole_area / (cell * cell)
+    min_cells = params.openings.min_hole_area / (cell * cell)
     # cells cut off by the opening: unexplained, neither hole nor wall
     work = np.where((values == HOLE) & ~hole, OCCLUDED, values)
     slices = ndimage.find_objects(labels)
@@ -277,7 +277,7 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         touches_edge = c0 == 0 or c1 == cols or r1 == rows
         area = int(region_sizes[lab]) * cell * cell
         unknown = Opening(ElementKind.UNKNOWN, mask, None, math.inf, fill, occ_border, n_cells, region)
-        if touches_edge or area > params.max_opening_area or fill < params.Ta:
+        if touches_edge or area > params.openings.max_opening_area or fill < params.openings.Ta:
             out.append(unknown)
             continue
         rect, _ = fit_rectangle(region, work, params)
@@ -285,13 +285,13 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         eps = window_uncertainty_eq3(np.where(mask, HOLE, np.where(region | (work == HOLE), OCCLUDED, work)), rect)
         bounds = refine_bounds(rect, wall_st, s0, t0, cell, params)
         width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
-        if occ_border > params.occlusion_touch_max or eps > params.max_window_uncertainty \
-                or min(width, height) < params.min_opening_size:
-            unknown.rect = rect if occ_border > params.occlusion_touch_max else None
+        if occ_border > params.openings.occlusion_touch_max or eps > params.openings.max_window_uncertainty \
+                or min(width, height) < params.openings.min_opening_size:
+            unknown.rect = rect if occ_border > params.openings.occlusion_touch_max else None
             out.append(unknown)
             continue
-        near_ground = bounds[2] <= float(np.mean(ground[rect[2]:rect[3]])) + params.door_bottom_tol
-        kind = ElementKind.DOOR if near_ground and height >= params.door_min_height else ElementKind.WINDOW
+        near_ground = bounds[2] <= float(np.mean(ground[rect[2]:rect[3]])) + params.openings.door_bottom_tol
+        kind = ElementKind.DOOR if near_ground and height >= params.openings.door_min_height else ElementKind.WINDOW
         out.append(Opening(kind, mask, rect, eps, fill, occ_border, n_cells, region, bounds))
     return out
 
@@ -310,7 +310,7 @@ def complete_by_repetition(openings: list[Opening], values: np.ndarray, s0: floa
     rows, cols = values.shape
     clean = [op for op in openings if op.kind is ElementKind.WINDOW and op.bounds is not None
              and op.occluded_border <= 0.05]
-    tol = params.repetition_tol
+    tol = params.openings.repetition_tol
     done = 0
 
     def idx(x: float, origin: float, n: int) -> int:

@@ -1,140 +1,37 @@
-"""TODO docstring."""
+"""Parameters of façade extraction: one group per step of the observation (TOML ``[facade]`` with
+sub-tables ``[facade.join]``, ``[facade.planes]``, ``[facade.layers]``, ``[facade.objects]``, ``[facade.occlusion]``,
+``[facade.openings]``). Lengths in metres, angles in degrees."""
 
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
+
+from lidarmap.config import check_params
 
 
 @dataclasses.dataclass(frozen=True)
-class FacadeParams:
-    """Parameters of façade extraction (TOML table ``[facade]``). Lengths in metres, angles in degrees.
+class JoinParams:
+    """Points and buildings (§2.2) (TOML ``[facade.join]``).
 
-    Points and buildings (§2.2)
-        ground_class (2): ASPRS class of ground points, used when the classification contains it.
-        building_class (6): class of building points; when absent every non-ground point is a building candidate.
-        ground_cell (2.0): xy cell of the height rule used without a ground class (lowest point per cell, then the
-            minimum over the 3x3 cells around).
-        ground_height (0.25): points less than this above the local lowest point are ground (height rule).
-        max_footprint_distance (2.0): points farther than this from every footprint are ignored (paper: 2 m); also
-            the band around a footprint's boundary where façades are searched and the edge-matching distance.
-        join_quantum (0.02): xy snapping before the footprint join (≤ 1.4 cm error, one query per distinct spot).
-
-    Vertical planes
-        plane_method ("ransac"): "ransac" (efficient RANSAC, Schnabel 2007) or "region" (k-NN region growing).
-        detect_voxel (0.1): detection runs on one point per voxel of this size (uniform density).
-        detect_max_points (150000): at most this many voxel points per building for detection.
-        normal_k (12): neighbours for the PCA normals.
-        vertical_tolerance_deg (15.0): normals within this of horizontal belong to vertical surfaces.
-        ransac_threshold (0.05): inlier distance to a plane (MLS noise is mm-cm; wall roughness a few cm).
-        ransac_normal_deg (15.0): inlier normal deviation.
-        ransac_hypotheses (256): candidates per extraction round.
-        ransac_eval_points (4000): random subset on which candidates are scored.
-        region_angle_deg (10.0): region growing: max normal angle between neighbours.
-        min_facade_points (150): a façade plane needs this many voxel points (0.1 m voxels: ~1.5 m² of wall).
-        min_facade_length (1.0): and this length along the wall.
-        facade_max_gap (2.0): collinear inliers further apart than this along the wall are separate planes.
-        merge_angle_deg (20.0): near-parallel planes (angle below this) ...
-        merge_depth (1.5): ... whose ends both lie within this depth of a bigger plane, overlapping it along the
-            wall, are one façade (its layers, or a short spurious fit through pilasters, reveals and door leaves;
-            a genuinely different wall 20° off is longer than merge_depth / tan 20° = 4 m and stays apart).
-        edge_angle_deg (10.0): a footprint edge matches a façade within this angle (and max_footprint_distance).
-        facade_margin (0.3): points up to this beyond a façade's ends still belong to it.
-
-    Depth layers (§2.3)
-        cell (0.1): size of the 2.5D grid cells (windows ≥ 0.5 m span ≥ 5 cells; MLS spacing is 1-10 cm).
-        layer_front (1.5): points up to this in front of the main plane form layers (balconies, bay windows).
-        layer_back (0.6): and up to this behind it (door leaves, recessed panels); deeper points were seen through
-            openings.
-        gmm_max_components (4): the GMM tries 1..K components and keeps the lowest BIC.
-        gmm_max_samples (8000): points per GMM fit (density-equalised sample).
-        gmm_points_per_cell (3): the sample keeps at most this many points per grid cell.
-        gmm_n_init (1): GMM restarts per K.
-        gmm_reg_var (1e-6): variance floor added by the GMM (m²), i.e. σ ≥ 1 mm.
-        gmm_min_weight (0.002): lighter components are dropped.
-        min_layer_separation (0.04): components with closer means are merged.
-        sigma_k (3.0): points within sigma_k σ of the main layer give the PCA normal (paper: 3σ, 99.7 %); points
-            beyond sigma_k σ of every layer belong to none.
-        refine_iterations (1): rounds of GMM -> 3σ inliers -> PCA normal -> re-projection (then the final GMM).
-        structure_min_offset (0.05): layers further than this from the main one carry objects (proud: STRUCTURE;
-            recessed: DOOR, WINDOW or STRUCTURE).
-        surface_max_sigma (0.05): a recessed object whose depths spread more than this (robust σ) is clutter
-            (reveals, mixed cells, interiors seen through glass), not a surface: it is dropped (neither a door leaf,
-            a recessed window nor a structure).
-        layer_cell_share (0.2): a cell shows the front-most layer holding at least this share (and 2) of its
-            points (the main layer: 2 points): the wall hides interior surfaces seen through a window behind it, a
-            balcony hides the wall.
-
-    Objects
-        close_cells (1): gaps of up to 2*close_cells cells are closed before region growing, and at least this
-            radius closes sampling gaps when deciding which cells were observed ...
-        max_close_cells (3): ... raised up to this where the local point spacing is coarser (radius = spacing /
-            cell); windows wider than 2*max_close_cells+1 cells are never closed.
-        min_object_area (0.1): smaller objects are dropped.
-        min_object_width (0.2): parts of an object thinner than this are cut (opening), e.g. window reveals.
-        concave_ratio (0.3): shapely concave_hull ratio for object outlines (0 most concave, 1 convex hull).
-        max_outline_points (4000): points used per outline.
-
-    Occlusion (§2.4)
-        occluder_min_depth (0.2): points at least this far in front of the main plane are occluders (any class).
-        occluder_radius (0.03): radius of a foreground sample (the beam footprint; raised to half the foreground's
-            point spacing, the Voronoi radius of a sample); its shadow on the wall has radius λ x that.
-        occluder_max_radius_cells (6): cap of a shadow's radius in cells.
-        occlusion_close_cells (1): closing of the occlusion mask (joins neighbouring shadows).
-        through_max_depth (25.0): points up to this far behind the plane are looked at as seen-through points.
-        reach_quantile (0.995): the scanner's max range and elevation limits are this quantile over the campaign.
-        reach_margin (1.05): factor on the max range.
-        reach_angle_margin_deg (2.0): margin on the elevation limits.
-        max_incidence_deg (85.0): rays more grazing than this to the wall return nothing.
-        reach_step (0.5): trajectory sampling step for the reach test.
-        index_bin (5.0): xy bin of the spatial index used to fetch points around a façade.
-
-    Windows and doors (§2.4)
-        Ta (0.7): fill ratio (hole cells / bounding-box cells) above which a hole is a window candidate. A
-            rectangle has ~1 (0.8-0.95 with jagged sampled edges), an arched window ~0.9, a circle 0.785; L-shaped or
-            diagonal leftovers of shadows score ≤ 0.6-0.75.
-        min_hole_area (0.12): smaller holes are sampling gaps.
-        max_opening_area (16.0): larger holes are UNKNOWN.
-        min_opening_size (0.45): windows/doors narrower or lower than this are UNKNOWN (the visible corner of a
-            mostly hidden opening is not a window).
-        max_window_uncertainty (0.5): rectangles with a larger eq. (3) ε_w are UNKNOWN.
-        occlusion_touch_max (0.6): holes with more of their border occluded are UNKNOWN (mostly hidden: the
-            opening may continue behind the occluder); they still vote as window evidence. Below it the visible part
-            is fitted (a sill hidden by the balcony below it costs a few cells, not the window).
-        canny_sigma (1.0): Canny smoothing (cells).
-        hough_lines (6): Hough peaks per orientation.
-        hough_max_tilt_deg (2.0), hough_angle_steps (2): near-vertical/horizontal angles tried.
-        hough_offsets (1): each line is tried this many cells either side.
-        edge_bias_cells (0.5): without wall points next to a side, window/door rectangles grow by this many cells
-            on each side: a cell straddling a window edge usually holds wall points, so the hole is on average half
-            a cell short on each side.
-        refine_max_cells (2.5): with wall points, each side is placed half a sampling spacing beyond the last wall
-            sample (sub-cell, and right for sparse far façades whose scan lines are further apart than a cell);
-            it moves at most this many cells from its cell edge ...
-        refine_min_points (8): ... and needs this many wall points along it.
-        door_bottom_tol (1.5): openings (holes or recessed leaves) starting within this of the ground in front
-            of them may be doors: the ground floor sits up to ~1 m above the pavement on sloping streets ...
-        door_min_height (1.9): ... and doors are at least this tall (windows, even on the ground floor, are
-            shorter; their sills are ~1 m above the floor).
-        ground_band (4.0): ground points up to this far in front of the wall give the ground line ...
-        ground_bin (1.0): ... one low (20th percentile) height per this length along the wall.
-        door_max_width (3.5): recessed door leaves are at most this wide.
-        recessed_windows (False): a rectangular region of a recessed layer (fill >= Ta, opening-sized) that is not a
-            door is a WINDOW (glass with blinds or curtains returns the laser a few cm to dm behind the wall);
-            False keeps it a STRUCTURE.
-        complete_by_repetition (True): a window cut by an occlusion (e.g. the sill hidden by the balcony below it)
-            takes the height/width of the unoccluded windows in its column/row, across occluded cells only
-            (paper §2.1: façade elements repeat); eq. (3) then counts the occluded cells it covers ...
-        repetition_tol (0.2): ... the windows of a column (row) have both sides within this of each other.
-        hole_open_cells (1): holes are opened by a square of this radius (removes 1-2 cell fringes of unobserved
-            wall along shadow edges).
-        bridge_cells (2): hole parts separated by up to 2*bridge_cells occluded cells (a pole or trunk in front
-            of a window) are one opening candidate.
-        occlusion_grow_cells (1): the occlusion mask grows by this many cells into unobserved cells (the last
-            unobserved cells at a shadow's edge are ambiguous, not holes).
-        min_unknown_area (0.1): smaller occluded regions are not reported as UNKNOWN elements.
+    ground_class (2): ASPRS class of ground points, used when the classification contains it.
+    building_class (6): class of building points; when absent every non-ground point is a building candidate.
+    ground_cell (2.0): xy cell of the height rule used without a ground class (lowest point per cell, then the
+        minimum over the 3x3 cells around).
+    ground_height (0.25): points less than this above the local lowest point are ground (height rule).
+    max_footprint_distance (2.0): points farther than this from every footprint are ignored (paper: 2 m); also
+        the band around a footprint's boundary where façades are searched and the edge-matching distance.
+    join_quantum (0.02): xy snapping before the footprint join (≤ 1.4 cm error, one query per distinct spot).
     """
 
-    section = "facade"
+    constraints: ClassVar[dict[str, str]] = {
+        "ground_class": ">= 0",
+        "building_class": ">= 0",
+        "ground_cell": "> 0",
+        "ground_height": ">= 0",
+        "max_footprint_distance": "> 0",
+        "join_quantum": "> 0",
+    }
 
     ground_class: int = 2
     building_class: int = 6
@@ -142,6 +39,55 @@ class FacadeParams:
     ground_height: float = 0.25
     max_footprint_distance: float = 2.0
     join_quantum: float = 0.02
+
+    def __post_init__(self) -> None:
+        check_params(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class PlaneParams:
+    """Vertical planes (TOML ``[facade.planes]``).
+
+    plane_method ("ransac"): "ransac" (efficient RANSAC, Schnabel 2007) or "region" (k-NN region growing).
+    detect_voxel (0.1): detection runs on one point per voxel of this size (uniform density).
+    detect_max_points (150000): at most this many voxel points per building for detection.
+    normal_k (12): neighbours for the PCA normals.
+    vertical_tolerance_deg (15.0): normals within this of horizontal belong to vertical surfaces.
+    ransac_threshold (0.05): inlier distance to a plane (MLS noise is mm-cm; wall roughness a few cm).
+    ransac_normal_deg (15.0): inlier normal deviation.
+    ransac_hypotheses (256): candidates per extraction round.
+    ransac_eval_points (4000): random subset on which candidates are scored.
+    region_angle_deg (10.0): region growing: max normal angle between neighbours.
+    min_facade_points (150): a façade plane needs this many voxel points (0.1 m voxels: ~1.5 m² of wall).
+    min_facade_length (1.0): and this length along the wall.
+    facade_max_gap (2.0): collinear inliers further apart than this along the wall are separate planes.
+    merge_angle_deg (20.0): near-parallel planes (angle below this) ...
+    merge_depth (1.5): ... whose ends both lie within this depth of a bigger plane, overlapping it along the
+        wall, are one façade (its layers, or a short spurious fit through pilasters, reveals and door leaves;
+        a genuinely different wall 20° off is longer than merge_depth / tan 20° = 4 m and stays apart).
+    edge_angle_deg (10.0): a footprint edge matches a façade within this angle (and max_footprint_distance).
+    facade_margin (0.3): points up to this beyond a façade's ends still belong to it.
+    """
+
+    constraints: ClassVar[dict[str, str]] = {
+        "plane_method": "in ransac, region",
+        "detect_voxel": "> 0",
+        "detect_max_points": ">= 0",
+        "normal_k": ">= 0",
+        "vertical_tolerance_deg": ">= 0",
+        "ransac_threshold": "> 0",
+        "ransac_normal_deg": ">= 0",
+        "ransac_hypotheses": ">= 0",
+        "ransac_eval_points": ">= 0",
+        "region_angle_deg": ">= 0",
+        "min_facade_points": ">= 0",
+        "min_facade_length": ">= 0",
+        "facade_max_gap": ">= 0",
+        "merge_angle_deg": ">= 0",
+        "merge_depth": ">= 0",
+        "edge_angle_deg": ">= 0",
+        "facade_margin": ">= 0",
+    }
 
     plane_method: str = "ransac"
     detect_voxel: float = 0.1
@@ -161,6 +107,56 @@ class FacadeParams:
     edge_angle_deg: float = 10.0
     facade_margin: float = 0.3
 
+    def __post_init__(self) -> None:
+        check_params(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class LayerParams:
+    """Depth layers (§2.3) (TOML ``[facade.layers]``).
+
+    cell (0.1): size of the 2.5D grid cells (windows ≥ 0.5 m span ≥ 5 cells; MLS spacing is 1-10 cm).
+    layer_front (1.5): points up to this in front of the main plane form layers (balconies, bay windows).
+    layer_back (0.6): and up to this behind it (door leaves, recessed panels); deeper points were seen through
+        openings.
+    gmm_max_components (4): the GMM tries 1..K components and keeps the lowest BIC.
+    gmm_max_samples (8000): points per GMM fit (density-equalised sample).
+    gmm_points_per_cell (3): the sample keeps at most this many points per grid cell.
+    gmm_n_init (1): GMM restarts per K.
+    gmm_reg_var (1e-6): variance floor added by the GMM (m²), i.e. σ ≥ 1 mm.
+    gmm_min_weight (0.002): lighter components are dropped.
+    min_layer_separation (0.04): components with closer means are merged.
+    sigma_k (3.0): points within sigma_k σ of the main layer give the PCA normal (paper: 3σ, 99.7 %); points
+        beyond sigma_k σ of every layer belong to none.
+    refine_iterations (1): rounds of GMM -> 3σ inliers -> PCA normal -> re-projection (then the final GMM).
+    structure_min_offset (0.05): layers further than this from the main one carry objects (proud: STRUCTURE;
+        recessed: DOOR, WINDOW or STRUCTURE).
+    surface_max_sigma (0.05): a recessed object whose depths spread more than this (robust σ) is clutter
+        (reveals, mixed cells, interiors seen through glass), not a surface: it is dropped (neither a door leaf,
+        a recessed window nor a structure).
+    layer_cell_share (0.2): a cell shows the front-most layer holding at least this share (and 2) of its
+        points (the main layer: 2 points): the wall hides interior surfaces seen through a window behind it, a
+        balcony hides the wall.
+    """
+
+    constraints: ClassVar[dict[str, str]] = {
+        "cell": "> 0",
+        "layer_front": ">= 0",
+        "layer_back": ">= 0",
+        "gmm_max_components": ">= 1",
+        "gmm_max_samples": ">= 0",
+        "gmm_points_per_cell": ">= 0",
+        "gmm_n_init": ">= 0",
+        "gmm_reg_var": ">= 0",
+        "gmm_min_weight": ">= 0",
+        "min_layer_separation": ">= 0",
+        "sigma_k": ">= 0",
+        "refine_iterations": ">= 0",
+        "structure_min_offset": ">= 0",
+        "layer_cell_share": ">= 0",
+        "surface_max_sigma": ">= 0",
+    }
+
     cell: float = 0.1
     layer_front: float = 1.5
     layer_back: float = 0.6
@@ -177,12 +173,75 @@ class FacadeParams:
     layer_cell_share: float = 0.2
     surface_max_sigma: float = 0.05
 
+    def __post_init__(self) -> None:
+        check_params(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectParams:
+    """Objects (TOML ``[facade.objects]``).
+
+    close_cells (1): gaps of up to 2*close_cells cells are closed before region growing, and at least this
+        radius closes sampling gaps when deciding which cells were observed ...
+    max_close_cells (3): ... raised up to this where the local point spacing is coarser (radius = spacing /
+        cell); windows wider than 2*max_close_cells+1 cells are never closed.
+    min_object_area (0.1): smaller objects are dropped.
+    min_object_width (0.2): parts of an object thinner than this are cut (opening), e.g. window reveals.
+    concave_ratio (0.3): shapely concave_hull ratio for object outlines (0 most concave, 1 convex hull).
+    max_outline_points (4000): points used per outline.
+    """
+
+    constraints: ClassVar[dict[str, str]] = {
+        "close_cells": ">= 0",
+        "max_close_cells": ">= 0",
+        "min_object_area": ">= 0",
+        "min_object_width": ">= 0",
+        "concave_ratio": ">= 0",
+        "max_outline_points": ">= 0",
+    }
+
     close_cells: int = 1
     max_close_cells: int = 3
     min_object_area: float = 0.1
     min_object_width: float = 0.2
     concave_ratio: float = 0.3
     max_outline_points: int = 4000
+
+    def __post_init__(self) -> None:
+        check_params(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class OcclusionParams:
+    """Occlusion (§2.4) (TOML ``[facade.occlusion]``).
+
+    occluder_min_depth (0.2): points at least this far in front of the main plane are occluders (any class).
+    occluder_radius (0.03): radius of a foreground sample (the beam footprint; raised to half the foreground's
+        point spacing, the Voronoi radius of a sample); its shadow on the wall has radius λ x that.
+    occluder_max_radius_cells (6): cap of a shadow's radius in cells.
+    occlusion_close_cells (1): closing of the occlusion mask (joins neighbouring shadows).
+    through_max_depth (25.0): points up to this far behind the plane are looked at as seen-through points.
+    reach_quantile (0.995): the scanner's max range and elevation limits are this quantile over the campaign.
+    reach_margin (1.05): factor on the max range.
+    reach_angle_margin_deg (2.0): margin on the elevation limits.
+    max_incidence_deg (85.0): rays more grazing than this to the wall return nothing.
+    reach_step (0.5): trajectory sampling step for the reach test.
+    index_bin (5.0): xy bin of the spatial index used to fetch points around a façade.
+    """
+
+    constraints: ClassVar[dict[str, str]] = {
+        "occluder_min_depth": ">= 0",
+        "occluder_radius": ">= 0",
+        "occluder_max_radius_cells": ">= 0",
+        "occlusion_close_cells": ">= 0",
+        "through_max_depth": ">= 0",
+        "reach_quantile": ">= 0",
+        "reach_margin": ">= 0",
+        "reach_angle_margin_deg": ">= 0",
+        "max_incidence_deg": ">= 0",
+        "reach_step": "> 0",
+        "index_bin": "> 0",
+    }
 
     occluder_min_depth: float = 0.2
     occluder_radius: float = 0.03
@@ -195,6 +254,86 @@ class FacadeParams:
     max_incidence_deg: float = 85.0
     reach_step: float = 0.5
     index_bin: float = 5.0
+
+    def __post_init__(self) -> None:
+        check_params(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class OpeningParams:
+    """Windows and doors (§2.4) (TOML ``[facade.openings]``).
+
+    Ta (0.7): fill ratio (hole cells / bounding-box cells) above which a hole is a window candidate. A
+        rectangle has ~1 (0.8-0.95 with jagged sampled edges), an arched window ~0.9, a circle 0.785; L-shaped or
+        diagonal leftovers of shadows score ≤ 0.6-0.75.
+    min_hole_area (0.12): smaller holes are sampling gaps.
+    max_opening_area (16.0): larger holes are UNKNOWN.
+    min_opening_size (0.45): windows/doors narrower or lower than this are UNKNOWN (the visible corner of a
+        mostly hidden opening is not a window).
+    max_window_uncertainty (0.5): rectangles with a larger eq. (3) ε_w are UNKNOWN.
+    occlusion_touch_max (0.6): holes with more of their border occluded are UNKNOWN (mostly hidden: the
+        opening may continue behind the occluder); they still vote as window evidence. Below it the visible part
+        is fitted (a sill hidden by the balcony below it costs a few cells, not the window).
+    canny_sigma (1.0): Canny smoothing (cells).
+    hough_lines (6): Hough peaks per orientation.
+    hough_max_tilt_deg (2.0), hough_angle_steps (2): near-vertical/horizontal angles tried.
+    hough_offsets (1): each line is tried this many cells either side.
+    edge_bias_cells (0.5): without wall points next to a side, window/door rectangles grow by this many cells
+        on each side: a cell straddling a window edge usually holds wall points, so the hole is on average half
+        a cell short on each side.
+    refine_max_cells (2.5): with wall points, each side is placed half a sampling spacing beyond the last wall
+        sample (sub-cell, and right for sparse far façades whose scan lines are further apart than a cell);
+        it moves at most this many cells from its cell edge ...
+    refine_min_points (8): ... and needs this many wall points along it.
+    door_bottom_tol (1.5): openings (holes or recessed leaves) starting within this of the ground in front
+        of them may be doors: the ground floor sits up to ~1 m above the pavement on sloping streets ...
+    door_min_height (1.9): ... and doors are at least this tall (windows, even on the ground floor, are
+        shorter; their sills are ~1 m above the floor).
+    ground_band (4.0): ground points up to this far in front of the wall give the ground line ...
+    ground_bin (1.0): ... one low (20th percentile) height per this length along the wall.
+    door_max_width (3.5): recessed door leaves are at most this wide.
+    recessed_windows (False): a rectangular region of a recessed layer (fill >= Ta, opening-sized) that is not a
+        door is a WINDOW (glass with blinds or curtains returns the laser a few cm to dm behind the wall);
+        False keeps it a STRUCTURE.
+    complete_by_repetition (True): a window cut by an occlusion (e.g. the sill hidden by the balcony below it)
+        takes the height/width of the unoccluded windows in its column/row, across occluded cells only
+        (paper §2.1: façade elements repeat); eq. (3) then counts the occluded cells it covers ...
+    repetition_tol (0.2): ... the windows of a column (row) have both sides within this of each other.
+    hole_open_cells (1): holes are opened by a square of this radius (removes 1-2 cell fringes of unobserved
+        wall along shadow edges).
+    bridge_cells (2): hole parts separated by up to 2*bridge_cells occluded cells (a pole or trunk in front
+        of a window) are one opening candidate.
+    occlusion_grow_cells (1): the occlusion mask grows by this many cells into unobserved cells (the last
+        unobserved cells at a shadow's edge are ambiguous, not holes).
+    min_unknown_area (0.1): smaller occluded regions are not reported as UNKNOWN elements.
+    """
+
+    constraints: ClassVar[dict[str, str]] = {
+        "Ta": "(0, 1]",
+        "min_hole_area": ">= 0",
+        "max_opening_area": ">= 0",
+        "min_opening_size": ">= 0",
+        "max_window_uncertainty": ">= 0",
+        "occlusion_touch_max": ">= 0",
+        "canny_sigma": ">= 0",
+        "hough_lines": ">= 0",
+        "hough_max_tilt_deg": ">= 0",
+        "hough_angle_steps": ">= 0",
+        "hough_offsets": ">= 0",
+        "edge_bias_cells": ">= 0",
+        "refine_max_cells": ">= 0",
+        "refine_min_points": ">= 0",
+        "door_bottom_tol": ">= 0",
+        "ground_band": ">= 0",
+        "ground_bin": ">= 0",
+        "door_min_height": ">= 0",
+        "hole_open_cells": ">= 0",
+        "bridge_cells": ">= 0",
+        "occlusion_grow_cells": ">= 0",
+        "door_max_width": ">= 0",
+        "repetition_tol": ">= 0",
+        "min_unknown_area": ">= 0",
+    }
 
     Ta: float = 0.7
     min_hole_area: float = 0.12
@@ -224,14 +363,37 @@ class FacadeParams:
     min_unknown_area: float = 0.1
 
     def __post_init__(self) -> None:
-        if self.plane_method not in ("ransac", "region"):
-            raise ValueError(f"plane_method must be 'ransac' or 'region', not {self.plane_method!r}")
-        positive = ("cell", "max_footprint_distance", "join_quantum", "detect_voxel", "ransac_threshold",
-                    "ground_cell", "index_bin", "reach_step")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0")
-        if not 0.0 < self.Ta <= 1.0:
-            raise ValueError("Ta must be in (0, 1]")
-        if self.gmm_max_components < 1:
-            raise ValueError("gmm_max_components must be >= 1")
+        check_params(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class FacadeParams:
+    """Parameters of façade extraction (TOML table ``[facade]``). Lengths in metres, angles in degrees.
+
+    One group per step; in TOML each is a sub-table of ``[facade]`` (``[facade.planes]``...). Keys written flat in
+    ``[facade]`` (before the groups existed) still work, with a warning naming their group.
+
+    """
+
+    section: ClassVar[str] = "facade"
+
+    join: JoinParams = dataclasses.field(default_factory=JoinParams)
+    planes: PlaneParams = dataclasses.field(default_factory=PlaneParams)
+    layers: LayerParams = dataclasses.field(default_factory=LayerParams)
+    objects: ObjectParams = dataclasses.field(default_factory=ObjectParams)
+    occlusion: OcclusionParams = dataclasses.field(default_factory=OcclusionParams)
+    openings: OpeningParams = dataclasses.field(default_factory=OpeningParams)
+
+    def updated(self, **values: object) -> "FacadeParams":
+        """A copy with some parameters changed, named flat (``cell=0.2``) or by group (``layers=LayerParams()``)."""
+        groups = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        for name, value in values.items():
+            if name in groups:
+                groups[name] = value
+                continue
+            owner = next((g for g, params in groups.items() if name in {f.name for f in dataclasses.fields(params)}),
+                         None)
+            if owner is None:
+                raise ValueError(f"FacadeParams has no parameter {name!r}")
+            groups[owner] = dataclasses.replace(groups[owner], **{name: value})
+        return FacadeParams(**groups)

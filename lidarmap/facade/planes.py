@@ -98,17 +98,17 @@ def ground_mask(xyz: np.ndarray, classification: np.ndarray | None, params: "Fac
     n = len(xyz)
     if n == 0:
         return np.zeros(0, dtype=bool)
-    if classification is not None and np.any(classification == params.ground_class):
-        return classification == params.ground_class
-    cells = LowestCells(xyz[:, :2].min(axis=0), params.ground_cell)
+    if classification is not None and np.any(classification == params.join.ground_class):
+        return classification == params.join.ground_class
+    cells = LowestCells(xyz[:, :2].min(axis=0), params.join.ground_cell)
     cells.add(xyz)
-    return cells.finish().ground(xyz, params.ground_height)
+    return cells.finish().ground(xyz, params.join.ground_height)
 
 
 def building_mask(classification: np.ndarray | None, ground: np.ndarray, params: "FacadeParams") -> np.ndarray:
     """Building points: class ``params.building_class`` when present, else every non-ground point."""
-    if classification is not None and np.any(classification == params.building_class):
-        return classification == params.building_class
+    if classification is not None and np.any(classification == params.join.building_class):
+        return classification == params.join.building_class
     return ~ground
 
 
@@ -255,32 +255,32 @@ def ransac_vertical_planes(xyz: np.ndarray, normals: np.ndarray, params: "Facade
     its largest connected run along the wall (gaps > ``facade_max_gap`` split) and removed; repeat until the best
     candidate has fewer than ``min_facade_points`` points.
     """
-    keep = np.abs(normals[:, 2]) < np.sin(np.radians(params.vertical_tolerance_deg))
+    keep = np.abs(normals[:, 2]) < np.sin(np.radians(params.planes.vertical_tolerance_deg))
     idx_all = np.flatnonzero(keep)
     xy = xyz[:, :2]
     n2 = normals[:, :2] / np.maximum(np.linalg.norm(normals[:, :2], axis=1, keepdims=True), 1e-12)
-    cos_n = np.cos(np.radians(params.ransac_normal_deg))
-    thr = params.ransac_threshold
+    cos_n = np.cos(np.radians(params.planes.ransac_normal_deg))
+    thr = params.planes.ransac_threshold
     remaining = idx_all.copy()
     planes: list[VerticalPlane] = []
     failures = 0
-    while len(remaining) >= params.min_facade_points and failures < 3:
+    while len(remaining) >= params.planes.min_facade_points and failures < 3:
         # Hypotheses: pairs (i, j) of remaining points with compatible normals.
-        m = 4 * params.ransac_hypotheses
+        m = 4 * params.planes.ransac_hypotheses
         i = rng.choice(remaining, size=m)
         j = rng.choice(remaining, size=m)
         dxy = xy[j] - xy[i]
         length = np.linalg.norm(dxy, axis=1)
         ok = (length > 0.3) & (np.abs(np.sum(n2[i] * n2[j], axis=1)) > cos_n)
         line_n = np.column_stack([-dxy[:, 1], dxy[:, 0]]) / np.maximum(length, 1e-12)[:, None]
-        ok &= np.abs(np.sum(line_n * n2[i], axis=1)) > np.cos(np.radians(2 * params.ransac_normal_deg))
-        i, line_n = i[ok][:params.ransac_hypotheses], line_n[ok][:params.ransac_hypotheses]
+        ok &= np.abs(np.sum(line_n * n2[i], axis=1)) > np.cos(np.radians(2 * params.planes.ransac_normal_deg))
+        i, line_n = i[ok][:params.planes.ransac_hypotheses], line_n[ok][:params.planes.ransac_hypotheses]
         if len(i) == 0:
             failures += 1
             continue
         c = -np.sum(line_n * xy[i], axis=1)
-        sub = remaining if len(remaining) <= params.ransac_eval_points else \
-            rng.choice(remaining, size=params.ransac_eval_points, replace=False)
+        sub = remaining if len(remaining) <= params.planes.ransac_eval_points else \
+            rng.choice(remaining, size=params.planes.ransac_eval_points, replace=False)
         dist = np.abs(line_n @ xy[sub].T + c[:, None])
         agree = np.abs(line_n @ n2[sub].T) > cos_n
         score = np.count_nonzero((dist < thr) & agree, axis=1)
@@ -295,10 +295,10 @@ def ransac_vertical_planes(xyz: np.ndarray, normals: np.ndarray, params: "Facade
                 normal, cc = fit_line_2d(xy[inl])
             else:
                 s = xy[inl] @ np.array([-normal[1], normal[0]])
-                inl = inl[_largest_run(s, params.facade_max_gap)]
-                if len(inl) >= params.min_facade_points:
+                inl = inl[_largest_run(s, params.planes.facade_max_gap)]
+                if len(inl) >= params.planes.min_facade_points:
                     plane = _make_plane(xy, inl)
-                    if plane.s_max - plane.s_min >= params.min_facade_length:
+                    if plane.s_max - plane.s_min >= params.planes.min_facade_length:
                         planes.append(plane)
                         remaining = np.setdiff1d(remaining, inl, assume_unique=True)
                         found = True
@@ -311,14 +311,14 @@ def region_growing_vertical_planes(xyz: np.ndarray, normals: np.ndarray, neighbo
                                    params: "FacadeParams") -> list[VerticalPlane]:
     """Vertical planes by region growing on the k-NN graph (normal angle and point-to-plane distance)."""
     n = len(xyz)
-    vertical = np.abs(normals[:, 2]) < np.sin(np.radians(params.vertical_tolerance_deg))
+    vertical = np.abs(normals[:, 2]) < np.sin(np.radians(params.planes.vertical_tolerance_deg))
     if n == 0 or not vertical.any():
         return []
     rows = np.repeat(np.arange(n), neighbours.shape[1])
     cols = neighbours.ravel()
-    cos_a = np.cos(np.radians(params.region_angle_deg))
+    cos_a = np.cos(np.radians(params.planes.region_angle_deg))
     ok = vertical[rows] & vertical[cols] & (np.abs(np.sum(normals[rows] * normals[cols], axis=1)) > cos_a)
-    ok &= np.abs(np.sum(normals[rows] * (xyz[cols] - xyz[rows]), axis=1)) < params.ransac_threshold
+    ok &= np.abs(np.sum(normals[rows] * (xyz[cols] - xyz[rows]), axis=1)) < params.planes.ransac_threshold
     graph = coo_matrix((np.ones(int(ok.sum())), (rows[ok], cols[ok])), shape=(n, n))
     ncomp, labels = connected_components(graph, directed=False)
     labels = np.where(vertical, labels, -1)
@@ -327,20 +327,20 @@ def region_growing_vertical_planes(xyz: np.ndarray, normals: np.ndarray, neighbo
     sorted_labels = labels[order]
     planes: list[VerticalPlane] = []
     xy = xyz[:, :2]
-    for comp in np.flatnonzero(counts >= params.min_facade_points):
+    for comp in np.flatnonzero(counts >= params.planes.min_facade_points):
         lo, hi = np.searchsorted(sorted_labels, [comp, comp + 1])
         members = order[lo:hi]
         plane = _make_plane(xy, members)
         # keep the inliers of the refitted plane only, then the largest run along it
         d = np.abs(plane.distance(xy[members]))
-        members = members[d < 2 * params.ransac_threshold]
-        if len(members) < params.min_facade_points:
+        members = members[d < 2 * params.planes.ransac_threshold]
+        if len(members) < params.planes.min_facade_points:
             continue
-        members = members[_largest_run(plane.along(xy[members]), params.facade_max_gap)]
-        if len(members) < params.min_facade_points:
+        members = members[_largest_run(plane.along(xy[members]), params.planes.facade_max_gap)]
+        if len(members) < params.planes.min_facade_points:
             continue
         plane = _make_plane(xy, members)
-        if plane.s_max - plane.s_min >= params.min_facade_length:
+        if plane.s_max - plane.s_min >= params.planes.min_facade_length:
             planes.append(plane)
     return planes
 
@@ -367,9 +367,9 @@ def _joinable(g: "PlaneGroup", plane: VerticalPlane, params: "FacadeParams") -> 
     ends = np.array([plane.s_min, plane.s_max])[:, None] * plane.direction - plane.c * plane.normal
     d = g.plane.distance(ends)
     s = g.plane.along(ends)
-    ok = abs(float(plane.normal @ g.plane.normal)) >= np.cos(np.radians(params.merge_angle_deg))
-    ok = ok and np.max(np.abs(d)) <= params.merge_depth
-    ok = ok and not (s.min() > g.s_max + params.facade_max_gap or s.max() < g.s_min - params.facade_max_gap)
+    ok = abs(float(plane.normal @ g.plane.normal)) >= np.cos(np.radians(params.planes.merge_angle_deg))
+    ok = ok and np.max(np.abs(d)) <= params.planes.merge_depth
+    ok = ok and not (s.min() > g.s_max + params.planes.facade_max_gap or s.max() < g.s_min - params.planes.facade_max_gap)
     return bool(ok), d, s
 
 
@@ -464,7 +464,7 @@ def match_footprint_edge(frame: FacadeFrame, s_range: tuple[float, float], polyg
     length = np.linalg.norm(vec, axis=1)
     valid = length > 1e-9
     dirs = vec / np.maximum(length, 1e-12)[:, None]
-    parallel = np.abs(dirs @ u2) > np.cos(np.radians(params.edge_angle_deg))
+    parallel = np.abs(dirs @ u2) > np.cos(np.radians(params.planes.edge_angle_deg))
     ends_st = (edges - frame.origin[:2]) @ np.stack([u2, n2], axis=1)  # (E, 2, 2): (s, d) of both ends
     mid = frame.origin[:2] + 0.5 * (s_range[0] + s_range[1]) * u2
     # distance of the façade's segment (its middle) to the edge line, and the overlap along the wall
@@ -472,7 +472,7 @@ def match_footprint_edge(frame: FacadeFrame, s_range: tuple[float, float], polyg
     mid_d = np.abs(dirs[:, 0] * rel[:, 1] - dirs[:, 1] * rel[:, 0])
     e_lo, e_hi = ends_st[:, :, 0].min(axis=1), ends_st[:, :, 0].max(axis=1)
     overlap = np.minimum(e_hi, s_range[1]) - np.maximum(e_lo, s_range[0])
-    ok = valid & parallel & (mid_d <= params.max_footprint_distance) & (overlap > 0)
+    ok = valid & parallel & (mid_d <= params.join.max_footprint_distance) & (overlap > 0)
     if not ok.any():
         return None, None
     best = int(np.argmax(np.where(ok, overlap, -np.inf)))

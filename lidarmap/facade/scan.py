@@ -26,6 +26,7 @@ import numpy as np
 from lidarmap.core import PointCloud, Trajectory
 from lidarmap.errors import InputError
 from lidarmap.facade.occlusion import reach_limits
+from lidarmap.facade.params import FacadeParams
 from lidarmap.facade.planes import LowestCells
 
 __all__ = ["REACH_SAMPLE", "PointClasses", "CampaignScan", "CampaignStats", "StatsPass"]
@@ -56,14 +57,14 @@ class PointClasses:
 class CampaignScan:
     """Pass 1: point count and bounds, the classes present, the lowest cells (until a ground class shows up)."""
 
-    def __init__(self, origin: np.ndarray, params, source: str | None = None):
+    def __init__(self, origin: np.ndarray, params: FacadeParams, source: str | None = None):
         self.params = params
         self.source = source
         self.n_points = 0
         self.lo = np.full(3, np.inf)
         self.hi = np.full(3, -np.inf)
         self.seen = np.zeros(256, dtype=bool)
-        self.lowest: LowestCells | None = LowestCells(origin, params.ground_cell)
+        self.lowest: LowestCells | None = LowestCells(origin, params.join.ground_cell)
 
     def _seen(self, code: int) -> bool:
         return 0 <= code < 256 and bool(self.seen[code])
@@ -76,7 +77,7 @@ class CampaignScan:
         classification = cloud.attrs.get("classification")
         if classification is not None and len(classification):
             self.seen[np.unique(classification).astype(np.int64)] = True
-        if self._seen(self.params.ground_class):
+        if self._seen(self.params.join.ground_class):
             self.lowest = None  # the classes decide: the height rule's table is not needed
         elif self.lowest is not None:
             self.lowest.add(cloud.xyz)
@@ -89,7 +90,7 @@ class CampaignScan:
 
     def classes(self) -> PointClasses:
         """The campaign's ground/building rule, once every chunk went through :meth:`add`."""
-        p = self.params
+        p = self.params.join
         by_class = self._seen(p.ground_class)
         return PointClasses(ground_class=p.ground_class if by_class else None,
                             building_class=p.building_class if self._seen(p.building_class) else None,

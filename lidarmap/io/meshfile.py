@@ -1,4 +1,4 @@
-"""TODO docstring."""
+"""Meshes on disk in CRS coordinates with double precision: binary PLY (``double`` x/y/z) and OBJ."""
 
 from __future__ import annotations
 

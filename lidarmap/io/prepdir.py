@@ -1,4 +1,5 @@
-"""TODO docstring."""
+"""The folder ``lidarmap prep`` writes: ``buildings/<id>.laz``, ``buildings.csv`` (the index), ``frame.json`` and
+``prep.json``; written whole (temporary folder renamed at the end) and read back by ``segment``."""
 
 from __future__ import annotations
 

@@ -1,8 +1,9 @@
-"""TODO docstring."""
+"""Tiles on disk: their headers checked together (one CRS, joint bounds) and their points streamed in chunks."""
 
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -13,6 +14,8 @@ from lidarmap.core import PointCloud
 from lidarmap.errors import CRSError, InputError
 from lidarmap.io.crs import same_crs
 from lidarmap.io.las import iter_las, read_header, resolve_crs
+
+log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass
@@ -69,6 +72,7 @@ def scan_tiles(paths: Sequence[str | Path], crs: str | CRS | None = None) -> Til
         total += int(header.point_count)
     if not total:
         raise InputError("the tiles hold no points", tiles[0])
+    log.info("%d tile(s), %d points, CRS %s", len(tiles), total, common.name)
     return TileSet(tiles, common, (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])), total)
 
 

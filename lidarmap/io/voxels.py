@@ -1,4 +1,5 @@
-"""TODO docstring."""
+"""Voxel grids on disk: the lossless ``.voxels.npz`` (voxel size, origin, CRS kept), MagicaVoxel ``.vox`` and a PLY
+of coloured cubes."""
 
 from __future__ import annotations
 

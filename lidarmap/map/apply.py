@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+import logging
 import tempfile
 import time
 from collections.abc import Callable
@@ -31,6 +32,8 @@ from lidarmap.map import refine
 from lidarmap.map.model import BuildingMap, Campaign
 from lidarmap.map.store import MapStore, campaign_fingerprint, writer_lock
 from lidarmap.map.update import UpdateParams, fuse_campaign, las_source
+
+log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -216,6 +219,7 @@ def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, An
             if store is None:
                 store = MapStore.create(map_path, crs.to_wkt())
             changes = store.commit(new_map, campaign)
+            log.info("%s: campaign %d (%s) committed: %s", map_path, campaign_id, inputs.source, counts)
         finally:
             if store is not None:
                 store.close()

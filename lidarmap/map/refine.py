@@ -51,12 +51,14 @@ import copy
 import dataclasses
 import math
 import time
+from typing import ClassVar
 
 import numpy as np
 import shapely
 from scipy import ndimage
 from shapely.geometry import Polygon, box
 
+from lidarmap.config import check_params
 from lidarmap.core import Footprints, PointCloud
 from lidarmap.errors import LidarmapError
 from lidarmap.facade.campaign import CampaignData, check_same_crs
@@ -150,6 +152,34 @@ class RefineParams:
     """
 
     section = "refine"
+    constraints: ClassVar[dict[str, str]] = {
+        "association_distance": ">= 0",
+        "extend_margin": ">= 0",
+        "extend_min": ">= 0",
+        "extend_min_area": ">= 0",
+        "normal_max_angle_deg": ">= 0",
+        "min_element_density": ">= 0",
+        "main_layer_gate": ">= 0",
+        "wall_retry_inits": ">= 0",
+        "layer_gate": ">= 0",
+        "layer_gate_min": ">= 0",
+        "iou_threshold": ">= 0",
+        "contain_fraction": ">= 0",
+        "line_offsets": ">= 0",
+        "max_window_uncertainty": ">= 0",
+        "seen_fraction": ">= 0",
+        "structure_vote": ">= 0",
+        "min_conflict_area": ">= 0",
+        "roof_min_height": ">= 0",
+        "roof_ground_ring": ">= 0",
+        "roof_buffer": ">= 0",
+        "roof_min_points": ">= 0",
+        "roof_max_slope_deg": ">= 0",
+        "roof_match_angle_deg": ">= 0",
+        "roof_match_distance": ">= 0",
+        "roof_outline_cell": ">= 0",
+        "roof_concave_ratio": ">= 0",
+    }
 
     association_distance: float = 2.0
     extend_margin: float = 2.0
@@ -179,6 +209,7 @@ class RefineParams:
     roof_concave_ratio: float = 0.3
 
     def __post_init__(self) -> None:
+        check_params(self)
         positive = ("association_distance", "main_layer_gate", "layer_gate", "max_window_uncertainty")
         for name in positive:
             if not getattr(self, name) > 0:
@@ -791,12 +822,12 @@ def _fuse_elements(stored: Facade, obs: Facade, layer_map: dict[int, int], votes
 
     openings, changed = _fuse_openings(of(stored.elements, *OPENINGS), of(new, *OPENINGS), votes, ids, params,
                                        obs.extent)
-    min_area = fparams.min_object_area
+    min_area = fparams.objects.min_object_area
     structures, changed_s = _fuse_structures(of(stored.elements, ElementKind.STRUCTURE),
                                              of(new, ElementKind.STRUCTURE), votes, ids, params, min_area)
     changed |= changed_s
     objects = _resolve_layer_conflicts(openings + structures, changed, params, min_area)
-    min_cells = max(1, int(math.ceil(fparams.min_unknown_area / (fparams.cell ** 2) - 1e-9)))
+    min_cells = max(1, int(math.ceil(fparams.openings.min_unknown_area / (fparams.layers.cell ** 2) - 1e-9)))
     unknown = _fuse_unknown([e for e in stored.elements if e.is_unknown], [e for e in new if e.is_unknown],
                             [e for e in objects if e.kind in OPENINGS], changed, votes, ids, campaign_id, min_cells)
     return sorted(objects + unknown, key=lambda e: e.element_id)
@@ -822,7 +853,7 @@ def _wall_component(layers: list[Layer], stored: Facade, fparams: FacadeParams, 
     """Whether the component of a campaign's layers matched to the stored main layer is narrow enough to be a
     surface (σ <= ``surface_max_sigma``)."""
     j = _main_match(stored.layer(stored.main_layer), layers, params)
-    return j is not None and layers[j].sigma <= fparams.surface_max_sigma
+    return j is not None and layers[j].sigma <= fparams.layers.surface_max_sigma
 
 
 def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, polygon, fparams: FacadeParams,
@@ -832,20 +863,20 @@ def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, po
     tm = tm if tm is not None else {}
     clock = time.perf_counter()
     rng = np.random.default_rng(seed)
-    if stored.evidence is not None and stored.evidence.cell != fparams.cell:
-        fparams = dataclasses.replace(fparams, cell=stored.evidence.cell)  # the grids must stay aligned
-    cell = fparams.cell
+    if stored.evidence is not None and stored.evidence.cell != fparams.layers.cell:
+        fparams = fparams.updated(cell=stored.evidence.cell)  # the grids must stay aligned
+    cell = fparams.layers.cell
     frame0 = stored.frame
     xyz = camp.xyz[member_ids]
     std = frame0.to_facade(xyz)
-    keep = (std[:, 2] >= -fparams.layer_back) & (std[:, 2] <= fparams.layer_front)
-    if keep.sum() < fparams.min_facade_points:
+    keep = (std[:, 2] >= -fparams.layers.layer_back) & (std[:, 2] <= fparams.layers.layer_front)
+    if keep.sum() < fparams.planes.min_facade_points:
         return None
     new_layers = layer_fit(std[keep], cell, fparams, rng, seed)  # the campaign's own Gaussians, stored depth axis
     if not _wall_component(new_layers, stored, fparams, params):
         # one random start can merge the wall into a broad clutter component (a few thousand points of a side
         # wall): the same sample again, with more starts
-        retry = dataclasses.replace(fparams, gmm_n_init=max(fparams.gmm_n_init, params.wall_retry_inits))
+        retry = fparams.updated(gmm_n_init=max(fparams.layers.gmm_n_init, params.wall_retry_inits))
         new_layers = layer_fit(std[keep], cell, retry, np.random.default_rng(seed), seed)
     matches, _ = match_layers(stored.layers, stored.main_layer, new_layers, params)
     if not matches:
@@ -853,7 +884,7 @@ def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, po
     j_main = next(i for i, lid in matches.items() if lid == stored.main_layer)
     main_old = stored.layer(stored.main_layer)
     # the plane: PCA normal of the new main layer's 3σ inliers, fused with the stored one by point counts
-    normal1, n_inl = _main_inlier_normal(xyz[keep], std[keep, 2], new_layers[j_main], fparams.sigma_k, frame0.normal)
+    normal1, n_inl = _main_inlier_normal(xyz[keep], std[keep, 2], new_layers[j_main], fparams.layers.sigma_k, frame0.normal)
     normal2 = frame0.normal[:2] if normal1 is None else _fuse_normal(
         frame0.normal, main_old.n_points, normal1, n_inl, params.normal_max_angle_deg)
     mu_main, _ = fuse_gaussians(main_old.mu, main_old.sigma, new_layers[j_main].mu, new_layers[j_main].sigma)
@@ -867,7 +898,7 @@ def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, po
     std1 = frame1.to_facade(xyz)
     obs_layers = [dataclasses.replace(la, mu=la.mu - mu_main) for la in new_layers]
     labels = np.full(len(std1), -1, dtype=np.int64)
-    labels[keep] = assign_layers(std1[keep, 2], obs_layers, fparams.sigma_k)
+    labels[keep] = assign_layers(std1[keep, 2], obs_layers, fparams.layers.sigma_k)
     on_main = labels == j_main
     extent1 = _extended_extent(stored.extent, std1[on_main, :2], cell, params)
     tm["layers"] = tm.get("layers", 0.0) + time.perf_counter() - clock
@@ -939,12 +970,12 @@ def refine_building(stored: Building, camp: CampaignData, ids: np.ndarray, fpara
     for k, f in enumerate(stored.facades):
         members = ids[owner == k]
         refined = None
-        if campaign_id not in f.campaigns and len(members) >= fparams.min_facade_points:
+        if campaign_id not in f.campaigns and len(members) >= fparams.planes.min_facade_points:
             refined = refine_facade(f, camp, members, polygon, fparams, params, campaign_id,
                                     seed * 31 + int(f.facade_id), tm)
         facades.append(refined if refined is not None else f)
     rest = ids[owner < 0]
-    if len(rest) >= fparams.min_facade_points and not any(campaign_id in f.campaigns for f in stored.facades):
+    if len(rest) >= fparams.planes.min_facade_points and not any(campaign_id in f.campaigns for f in stored.facades):
         clock = time.perf_counter()
         found = building_facades(camp, rest, polygon, fparams, campaign_id, seed, rng, tm)
         next_id = max((f.facade_id for f in stored.facades), default=-1) + 1

@@ -35,23 +35,30 @@ surroundings, not the campaign's size.
 
 from __future__ import annotations
 
-from lidarmap.executor import building_seed_sequence, group_by_cell
-
 import copy
 import dataclasses
+import logging
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import shapely
 from shapely.geometry import box as shapely_box
 
+from lidarmap.config import check_params
 from lidarmap.core import Footprints, PointCloud, Trajectory
 from lidarmap.errors import ConfigError, InputError
-from lidarmap.executor import TaskFailure, check_cluster_params, map_tasks, run_task
+from lidarmap.executor import (
+    TaskFailure,
+    building_seed_sequence,
+    check_cluster_params,
+    group_by_cell,
+    map_tasks,
+    run_task,
+)
 from lidarmap.facade.campaign import (
     CampaignData,
     campaign_data,
@@ -66,6 +73,8 @@ from lidarmap.facade.scan import CampaignScan, CampaignStats, PointClasses, Stat
 from lidarmap.io.spool import ColumnSpool
 from lidarmap.map.model import Building, BuildingMap
 from lidarmap.map.refine import RefineParams, _campaign_applied, refine_building
+
+log = logging.getLogger(__name__)
 
 __all__ = ["UpdateParams", "CampaignSource", "cloud_source", "las_source", "CellGrid", "BuildingJob", "GroupJob",
            "BuildingOutcome", "GroupOutcome", "FusedCampaign", "fuse_campaign", "group_task", "building_task",
@@ -96,6 +105,12 @@ class UpdateParams:
     """
 
     section = "update"
+    constraints: ClassVar[dict[str, str]] = {
+        "workers": ">= 0",
+        "chunk_points": ">= 0",
+        "cell": ">= 0",
+        "group_size": ">= 0",
+    }
 
     workers: int = 1
     scheduler: str = ""
@@ -104,6 +119,7 @@ class UpdateParams:
     group_size: float = 60.0
 
     def __post_init__(self) -> None:
+        check_params(self)
         try:
             check_cluster_params(self.workers, self.scheduler)
         except ConfigError as exc:
@@ -233,7 +249,7 @@ def _campaign_stats(spool: ColumnSpool, scan: CampaignScan, classes: PointClasse
         building = stats.add(cols["xyz"], cols["gps_time"], cols.get("classification"), cols["index"])
         starts = np.concatenate([[0], np.cumsum(spool.counts[keys])[:-1]])
         building_cells[keys] = np.add.reduceat(building.astype(np.int64), starts)
-    return stats.finish(params.reach_quantile), building_cells
+    return stats.finish(params.occlusion.reach_quantile), building_cells
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -279,8 +295,8 @@ def context_box(footprint: Any, stored: Building | None, limits: tuple[float, fl
     bins; the reach test at track positions within the scanner's reach.
     """
     x0, y0, x1, y1 = footprint.bounds
-    near = (fparams.max_footprint_distance + fparams.join_quantum + fparams.facade_margin + fparams.layer_front
-            + fparams.layer_back + 2 * fparams.cell)
+    near = (fparams.join.max_footprint_distance + fparams.join.join_quantum + fparams.planes.facade_margin + fparams.layers.layer_front
+            + fparams.layers.layer_back + 2 * fparams.layers.cell)
     if stored is not None and stored.facades:
         for f in stored.facades:
             ends = f.frame.to_crs(np.array([[f.extent[0], 0.0, 0.0], [f.extent[1], 0.0, 0.0]]))
@@ -289,16 +305,16 @@ def context_box(footprint: Any, stored: Building | None, limits: tuple[float, fl
         near += rparams.extend_margin + 1.0 + math.sin(math.radians(rparams.normal_max_angle_deg)) * math.hypot(
             x1 - x0, y1 - y0)
     facades = _grow((x0, y0, x1, y1), near)
-    reach = limits[0] * fparams.reach_margin + 1.0
+    reach = limits[0] * fparams.occlusion.reach_margin + 1.0
     return ContextBoxes(facades=facades,
-                        points=_grow(facades, max(reach, fparams.through_max_depth) + 1.0 + fparams.index_bin),
-                        ground=_grow(facades, fparams.ground_band + 1.0 + fparams.index_bin),
+                        points=_grow(facades, max(reach, fparams.occlusion.through_max_depth) + 1.0 + fparams.occlusion.index_bin),
+                        ground=_grow(facades, fparams.openings.ground_band + 1.0 + fparams.occlusion.index_bin),
                         track=_grow(facades, reach))
 
 
 def _join_box(footprint: Any, params: FacadeParams) -> tuple[float, float, float, float]:
     """Where the building's joined points can lie: within the join distance (+ the snapping) of its footprint."""
-    return _grow(footprint.bounds, params.max_footprint_distance + params.join_quantum)
+    return _grow(footprint.bounds, params.join.max_footprint_distance + params.join.join_quantum)
 
 
 @dataclasses.dataclass
@@ -349,7 +365,7 @@ def _joined_ids(camp: CampaignData, job: BuildingJob, params: FacadeParams) -> n
     """The context's building points whose nearest footprint (among all footprints) is this building's (§2.2)."""
     xy = camp.xyz[:, :2]
     cand = np.flatnonzero(camp.building & _inside(xy, _join_box(job.footprint, params)))
-    nearest, _ = join_footprints(xy[cand], job.neighbours, params.max_footprint_distance, params.join_quantum,
+    nearest, _ = join_footprints(xy[cand], job.neighbours, params.join.max_footprint_distance, params.join.join_quantum,
                                  origin=job.origin)
     return cand[nearest == job.own]
 
@@ -440,7 +456,7 @@ def _building_job(b: int, stored: BuildingMap, footprints: Footprints, tree: sha
     building = stored.buildings.get(bid)
     # a point joined to this footprint lies within the join box; any footprint nearer to it than this one
     # intersects the join box grown by the join distance again
-    reach = fparams.max_footprint_distance + fparams.join_quantum
+    reach = fparams.join.max_footprint_distance + fparams.join.join_quantum
     neighbours = np.sort(tree.query(shapely_box(*_grow(_join_box(polygon, fparams), reach))))
     boxes = context_box(polygon, building, campaign.stats.limits, fparams, rparams)
     job = BuildingJob(building_id=bid, footprint=polygon, properties=dict(footprints.properties[b]),
@@ -522,7 +538,7 @@ def fuse_campaign(stored: BuildingMap, source: CampaignSource, trajectory: Traje
         classes = scan.classes()
         stats, building_cells = _campaign_stats(spool, scan, classes, trajectory, fparams)
         campaign = _Campaign(spool, grid, classes, stats, building_cells,
-                             campaign_track(trajectory, *stats.t_span, fparams.reach_step))
+                             campaign_track(trajectory, *stats.t_span, fparams.occlusion.reach_step))
         todo = _buildings_near_points(footprints, campaign, fparams)
         groups = building_groups(footprints, todo, update.group_size)
         tm["prepare"] = tm.get("prepare", 0.0) + time.perf_counter() - clock
@@ -551,6 +567,7 @@ def _assemble(stored: BuildingMap, footprints: Footprints, outcomes: dict[int, A
         bid, outcome = str(footprints.ids[b]), outcomes[b]
         if isinstance(outcome, TaskFailure):
             failed[bid] = outcome.reason
+            log.warning("building %s failed: %s", bid, outcome.reason)
             continue
         joined += outcome.n_joined
         _add_timings(tm, outcome.timings)

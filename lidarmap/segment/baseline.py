@@ -17,12 +17,13 @@ import datetime
 import pickle
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import joblib
 import numpy as np
 from sklearn.ensemble import HistGradientBoostingClassifier
 
+from lidarmap.config import check_params
 from lidarmap.core import PointCloud
 from lidarmap.errors import InputError
 from lidarmap.io.atomic import atomic_path
@@ -56,6 +57,15 @@ class BaselineParams:
     """
 
     section = "segment_baseline"
+    constraints: ClassVar[dict[str, str]] = {
+        "k": ">= 0",
+        "column_cell": ">= 0",
+        "max_iter": ">= 0",
+        "learning_rate": ">= 0",
+        "max_leaf_nodes": ">= 0",
+        "max_samples": ">= 0",
+        "seed": ">= 0",
+    }
 
     scales: tuple[float, ...] = (0.0, 1.0, 3.0)
     k: int = 16
@@ -65,6 +75,9 @@ class BaselineParams:
     max_leaf_nodes: int = 31
     max_samples: int = 400_000
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_params(self)
 
 
 @dataclasses.dataclass

@@ -15,11 +15,13 @@ import math
 import os
 import weakref
 from collections.abc import Callable, Iterator
+from typing import ClassVar
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from lidarmap.config import check_params
 from lidarmap.core import PointCloud
 from lidarmap.segment.blocks import column_members, sample_indices, window_centres
 from lidarmap.segment.features import (
@@ -60,6 +62,16 @@ class PredictParams:
     """
 
     section = "segment"
+    constraints: ClassVar[dict[str, str]] = {
+        "overlap": ">= 0",
+        "batch_size": ">= 0",
+        "threshold": ">= 0",
+        "seed": ">= 0",
+        "rotations": ">= 0",
+        "window_weight": "in tent, uniform",
+        "threads": ">= 0",
+        "device": "in auto, cpu, cuda",
+    }
 
     overlap: float = 0.25
     batch_size: int = 32
@@ -72,6 +84,7 @@ class PredictParams:
     device: str = "auto"
 
     def __post_init__(self) -> None:
+        check_params(self)
         if self.window_weight not in ("tent", "uniform"):
             raise ValueError("window_weight must be tent or uniform")
         if self.rotations < 1:

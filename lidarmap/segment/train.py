@@ -7,12 +7,13 @@ import datetime
 import math
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 from torch.nn import functional as F
 
+from lidarmap.config import check_params
 from lidarmap.core import PointCloud
 from lidarmap.errors import InputError
 from lidarmap.segment.blocks import (
@@ -71,6 +72,29 @@ class TrainParams:
     """
 
     section = "segment_train"
+    constraints: ClassVar[dict[str, str]] = {
+        "seed": ">= 0",
+        "epochs": ">= 0",
+        "batch_size": ">= 0",
+        "learning_rate": ">= 0",
+        "weight_decay": ">= 0",
+        "lr_step": ">= 0",
+        "lr_gamma": ">= 0",
+        "block_size": ">= 0",
+        "block_points": ">= 0",
+        "blocks_per_epoch": ">= 0",
+        "coverage": ">= 0",
+        "building_centres": ">= 0",
+        "estimated_ground": ">= 0",
+        "scale_min": ">= 0",
+        "scale_max": ">= 0",
+        "jitter": ">= 0",
+        "val_fraction": ">= 0",
+        "split_cell": ">= 0",
+        "val_every": ">= 0",
+        "device": "in auto, cpu, cuda",
+        "threads": ">= 0",
+    }
 
     seed: int = 0
     epochs: int = 64
@@ -97,6 +121,7 @@ class TrainParams:
     threads: int = 0
 
     def __post_init__(self) -> None:
+        check_params(self)
         positive = ("epochs", "batch_size", "learning_rate", "lr_step", "block_size", "block_points", "coverage",
                     "split_cell")
         for name in positive:

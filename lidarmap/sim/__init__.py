@@ -7,8 +7,16 @@ truth under ``out_dir/truth``; ``load_truth(out_dir)`` reads that truth back. Se
 from lidarmap.sim.city import City, build_city
 from lidarmap.sim.params import SimParams
 from lidarmap.sim.scene import SimResult, simulate
-from lidarmap.sim.truth import (PointTruth, SimTruth, TruthBuilding, TruthCampaign, TruthElement, TruthFacade,
-                                load_ply, load_truth)
+from lidarmap.sim.truth import (
+                                PointTruth,
+                                SimTruth,
+                                TruthBuilding,
+                                TruthCampaign,
+                                TruthElement,
+                                TruthFacade,
+                                load_ply,
+                                load_truth,
+)
 
 __all__ = ["City", "PointTruth", "SimParams", "SimResult", "SimTruth", "TruthBuilding", "TruthCampaign",
            "TruthElement", "TruthFacade", "build_city", "load_ply", "load_truth", "simulate"]

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
+from lidarmap.config import check_params
 from lidarmap.errors import ConfigError
 
 
@@ -45,6 +47,34 @@ class SimParams:
     """
 
     section = "simulate"
+    constraints: ClassVar[dict[str, str]] = {
+        "seed": ">= 0",
+        "buildings": ">= 0",
+        "campaigns": ">= 0",
+        "streets": ">= 0",
+        "trees_per_100m": ">= 0",
+        "parking_occupancy": ">= 0",
+        "als_density": ">= 0",
+        "als_altitude": ">= 0",
+        "als_scan_angle": ">= 0",
+        "als_overlap": ">= 0",
+        "als_speed": ">= 0",
+        "als_range_noise": ">= 0",
+        "als_min_separation": ">= 0",
+        "als_wall_unlabelled": ">= 0",
+        "als_roof_unlabelled": ">= 0",
+        "mls_rate": ">= 0",
+        "mls_angular_step": ">= 0",
+        "mls_speed": ">= 0",
+        "mls_sensor_height": ">= 0",
+        "mls_max_range": ">= 0",
+        "mls_range_noise": ">= 0",
+        "mls_min_separation": ">= 0",
+        "mls_tilt": ">= 0",
+        "mls_label_error": ">= 0",
+        "mls_misregistration": ">= 0",
+        "visibility_cell": ">= 0",
+    }
 
     seed: int = 0
     buildings: int = 8
@@ -74,6 +104,7 @@ class SimParams:
     visibility_cell: float = 0.1
 
     def __post_init__(self) -> None:
+        check_params(self)
         checks = [
             (0 <= self.seed < 2**63, "seed must be a non-negative integer"),
             (1 <= self.buildings <= 40, "buildings must be between 1 and 40"),
