@@ -30,7 +30,7 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-from lidarmap.errors import ConfigError
+from lidarmap.errors import ConfigError, ParameterError
 
 P = TypeVar("P")
 log = logging.getLogger(__name__)
@@ -87,7 +87,7 @@ def _numeric(value: Any) -> bool:
 
 
 def check_params(params: Any) -> None:
-    """Check every constraint declared in ``type(params).constraints`` (ValueError naming the parameter).
+    """Check every constraint declared in ``type(params).constraints`` (ParameterError naming the parameter).
 
     Numbers must be finite whatever is declared; nested parameter groups check themselves when built.
     """
@@ -95,10 +95,17 @@ def check_params(params: Any) -> None:
     for field in dataclasses.fields(params):
         value = getattr(params, field.name)
         if _numeric(value) and not math.isfinite(value):
-            raise ValueError(f"{field.name} must be a finite number, not {value!r}")
+            raise ParameterError(f"{field.name} must be a finite number, not {value!r}")
         spec = declared.get(field.name)
         if spec is not None and value is not None and not _rule(spec)(value):
-            raise ValueError(f"{field.name} must be {spec}, not {value!r}")
+            raise ParameterError(f"{field.name} must be {_wording(spec)}, not {value!r}")
+
+
+def _wording(spec: str) -> str:
+    """A constraint spec as the error message says it: 'one of a, b', 'in (0, 1]', '> 0'."""
+    if spec.startswith("in "):
+        return "one of " + spec[3:]
+    return f"in {spec}" if _INTERVAL.match(spec) else spec
 
 
 def undeclared(params_cls: type) -> list[str]:
@@ -186,8 +193,9 @@ def _table_values(params_cls: type, table: dict[str, Any], section: str) -> dict
 def _build(params_cls: type[P], values: dict[str, Any], section: str) -> P:
     try:
         return params_cls(**values)
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"[{section}]: {exc}") from None
+    except (TypeError, ValueError, ConfigError) as exc:
+        problem = getattr(exc, "problem", str(exc))
+        raise ConfigError(problem if problem.startswith("[") else f"[{section}]: {problem}") from None
 
 
 def _apply_override(params_cls: type, values: dict[str, Any], key: str, value: Any, section: str) -> None:

@@ -32,6 +32,11 @@ class ConfigError(LidarmapError):
     """An unknown option or an invalid value in a config file or on the command line."""
 
 
+class ParameterError(ConfigError, ValueError):
+    """A parameter outside its declared constraint (:func:`lidarmap.config.check_params`); also a ValueError, as
+    Python code building parameter objects expects."""
+
+
 class MapLockedError(LidarmapError):
     """Another process is writing the same map."""
 

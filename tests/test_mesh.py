@@ -82,7 +82,7 @@ def test_voxel_mesh_carries_colours_and_fills_columns():
 
 
 def test_mesh_params_validation():
-    with pytest.raises(ConfigError, match="voxel_fill must be 'columns' or 'none'"):
+    with pytest.raises(ConfigError, match="voxel_fill must be one of columns, none, not 'full'"):
         MeshParams(voxel_fill="full")
     with pytest.raises(ConfigError, match="cell must be a finite number > 0"):
         MeshParams(cell=0)

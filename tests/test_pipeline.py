@@ -177,7 +177,7 @@ def _toml(tmp_path: Path, text: str) -> Path:
 
 @pytest.mark.parametrize("args,expected", [
     (["--stages", "densify,paint"], "unknown stage(s) paint"),
-    (["--method", "magic"], "method must be pointnet2 or baseline"),
+    (["--method", "magic"], "method must be one of pointnet2, baseline"),
     (["--mesh", "clay"], "mesh must be one of surface, voxels"),
     (["--workers", "0"], "workers must be at least 1"),
     (["--scheduler", "10.0.0.5"], "scheduler address '10.0.0.5' must look like tcp://HOST:PORT"),

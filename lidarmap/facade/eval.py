@@ -23,14 +23,23 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 from shapely.geometry import Polygon, box
 
 from lidarmap.facade.model import ElementKind, Facade
-from lidarmap.map.model import Building
+
 
 #: Element kinds scored against the truth (unknown regions are scored by area, see :func:`map_statistics`).
+class ObservedBuilding(Protocol):
+    """What the scores read of a building (a map's :class:`lidarmap.map.model.Building` is one): its id and
+    façades. A protocol, so that scoring observations needs nothing of the map."""
+
+    building_id: str
+    facades: list[Facade]
+
+
 SCORED_KINDS = ("window", "door", "structure")
 
 
@@ -99,7 +108,7 @@ def union_visibility(truth, campaigns: list[int]) -> dict[int, float]:
     return out
 
 
-def evaluate_facades(buildings: list[Building], truth, campaign_id: int, register: Callable | None = None,
+def evaluate_facades(buildings: list[ObservedBuilding], truth, campaign_id: int, register: Callable | None = None,
                      iou: float = 0.5, min_visible: float = 0.9, campaigns: list[int] | None = None) -> dict:
     """Window and door precision/recall/F1, mean IoU, plane offset and angle errors (see the module doc).
 
@@ -173,7 +182,7 @@ def evaluate_facades(buildings: list[Building], truth, campaign_id: int, registe
     return out
 
 
-def map_statistics(buildings: list[Building]) -> dict:
+def map_statistics(buildings: list[ObservedBuilding]) -> dict:
     """What a map says about itself (no truth needed): façade/window/door/unknown counts, unknown area (m²),
     mean window/door uncertainty ε (eq. 3), mean and max main-layer σ (m), campaigns per façade."""
     facades = [f for b in buildings for f in b.facades]

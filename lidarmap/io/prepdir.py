@@ -13,7 +13,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from lidarmap.aerial.prep import PrepResult
 from lidarmap.errors import InputError
 from lidarmap.io.atomic import atomic_dir, write_text_atomic
 from lidarmap.io.crs import describe_crs
@@ -53,9 +52,10 @@ def _fmt(value: float) -> str:
     return f"{value:.3f}" if math.isfinite(value) else ""
 
 
-def write_prep(out_dir: str | Path, result: PrepResult,
+def write_prep(out_dir: str | Path, result: Any,
                progress: Callable[[int], None] | None = None) -> Path:
-    """Write ``buildings/<id>.laz`` (CRS coordinates), ``buildings.csv``, ``frame.json`` and ``prep.json``.
+    """Write ``buildings/<id>.laz`` (CRS coordinates), ``buildings.csv``, ``frame.json`` and ``prep.json`` of a
+    :class:`lidarmap.aerial.prep.PrepResult` (read by its attributes: this module knows no stage).
 
     Everything goes to a temporary folder beside ``out_dir`` that is renamed onto it at the end, so an error never
     leaves a half-written output. An earlier prep output at ``out_dir`` is replaced; any other non-empty folder is
