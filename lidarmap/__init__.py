@@ -11,7 +11,7 @@ The names are loaded on first use, so ``import lidarmap`` (and ``lidarmap --help
 
 from lidarmap._version import __version__
 
-_API = ("read", "write", "read_footprints", "segment", "run", "update_map", "open_map", "export_cityjson",
+_API = ("read", "write", "read_footprints", "segment_buildings", "run", "update_map", "open_map", "export_cityjson",
         "PointCloud", "Footprints", "BuildingMap", "PipelineConfig", "RunResult", "UpdateResult")
 
 __all__ = ["__version__", *_API]

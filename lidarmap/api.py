@@ -5,7 +5,7 @@
     import lidarmap
 
     cloud = lidarmap.read("tile.laz", crs="EPSG:28992")               # PointCloud (float64 CRS coordinates)
-    probability = lidarmap.segment(cloud)                              # building probability per point
+    probability = lidarmap.segment_buildings(cloud)                   # building probability per point
     footprints = lidarmap.read_footprints("bag.geojson", id_field="bag_pand_id")
     result = lidarmap.run(["tile.laz"], footprints, "out/", crs="EPSG:28992")   # the aerial pipeline
     update = lidarmap.update_map("city.lmap", points="mls.laz", trajectory="traj.csv", footprints="bag.geojson")
@@ -39,8 +39,8 @@ from lidarmap.map.update import UpdateParams
 from lidarmap.segment.modelfile import load_model
 from lidarmap.segment.predict import PredictParams, predict
 
-__all__ = ["read", "write", "read_footprints", "segment", "run", "update_map", "open_map", "export_cityjson",
-           "PointCloud", "Footprints", "BuildingMap", "PipelineConfig", "RunResult", "UpdateResult"]
+__all__ = ["read", "write", "read_footprints", "segment_buildings", "run", "update_map", "open_map",
+           "export_cityjson", "PointCloud", "Footprints", "BuildingMap", "PipelineConfig", "RunResult", "UpdateResult"]
 
 
 def read(path: str | Path, crs: str | CRS | None = None) -> PointCloud:
@@ -53,7 +53,7 @@ def write(path: str | Path, cloud: PointCloud) -> Path:
     return write_las(path, cloud)
 
 
-def segment(cloud: PointCloud, params: PredictParams | None = None, model: Any = None) -> Any:
+def segment_buildings(cloud: PointCloud, params: PredictParams | None = None, model: Any = None) -> Any:
     """Building probability (float32, one per point) from the shipped PointNet++ model (or ``model``)."""
     return predict(cloud, model if model is not None else load_model(), params or PredictParams())
 
