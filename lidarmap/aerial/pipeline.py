@@ -69,7 +69,8 @@ from lidarmap.executor import (
 from lidarmap.io.atomic import atomic_dir, write_text_atomic
 from lidarmap.io.las import write_las
 from lidarmap.io.meshfile import write_mesh
-from lidarmap.io.prepdir import building_file_name
+from lidarmap.io.outdir import abandon_marked_dir, claim_out_dir, start_marked_dir
+from lidarmap.io.prepdir import unique_stems
 from lidarmap.io.tiles import read_tiles, scan_tiles
 from lidarmap.io.voxels import write_vox, write_voxels
 from lidarmap.segment.features import BUILDING_CLASS
@@ -345,9 +346,10 @@ def _meshes(xyz: np.ndarray, rgb: np.ndarray | None, bp: BuildingPoints, config:
 # Writing and resuming
 
 
-def building_dir(out_dir: Path, building_id: str) -> Path:
-    """``OUT/buildings/<id>``, the id made safe for file names."""
-    return out_dir / "buildings" / building_file_name(building_id).removesuffix(".laz")
+def building_dir(out_dir: Path, stem: str) -> Path:
+    """``OUT/buildings/<stem>``: the building's id made safe for file names and unique in the run
+    (:func:`lidarmap.io.prepdir.unique_stems`; the id -> folder map is in summary.json)."""
+    return out_dir / "buildings" / stem
 
 
 def building_fingerprint(bp: BuildingPoints, config: PipelineConfig, model_digest: str, context_digest: str = ""
@@ -366,20 +368,25 @@ def building_fingerprint(bp: BuildingPoints, config: PipelineConfig, model_diges
     return h.hexdigest()
 
 
-def finished(out_dir: Path, building_id: str, fingerprint: str) -> dict[str, Any] | None:
+def finished(out_dir: Path, building_id: str, stem: str, fingerprint: str) -> dict[str, Any] | None:
     """The stats of a building finished by an earlier run with the same fingerprint, else ``None``."""
-    path = building_dir(out_dir, building_id) / "building.json"
+    path = building_dir(out_dir, stem) / "building.json"
     try:
         record = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
+    if not isinstance(record, dict) or record.get("id") != building_id:
+        return None
     return record if record.get("fingerprint") == fingerprint else None
 
 
-def write_building(out_dir: Path, output: BuildingOutput, fingerprint: str, mesh_kind: str) -> dict[str, Any]:
-    """Write one building's folder whole (temporary folder renamed into place); returns its building.json record."""
-    record = {"id": output.id, "fingerprint": fingerprint, "mesh": mesh_kind, **output.stats}
-    with atomic_dir(building_dir(out_dir, output.id)) as tmp:
+def write_building(out_dir: Path, output: BuildingOutput, fingerprint: str, mesh_kind: str,
+                   stem: str) -> dict[str, Any]:
+    """Write one building's folder ``buildings/<stem>`` whole (temporary folder renamed into place); returns its
+    building.json record."""
+    record = {"id": output.id, "folder": f"buildings/{stem}", "fingerprint": fingerprint, "mesh": mesh_kind,
+              **output.stats}
+    with atomic_dir(building_dir(out_dir, stem)) as tmp:
         write_las(tmp / "points.laz", output.cloud)
         write_voxels(tmp / "voxels.npz", output.voxels)
         if len(output.voxels.ijk):
@@ -516,7 +523,7 @@ def _jobs(spooled: SpooledPrep, groups: list[list[int]], out: Path, config: Pipe
         context = spooled.context(members, config.run.context) if config.run.context > 0 else None
         digest = _context_digest([b.cloud for b in buildings] + [context])
         prints = [building_fingerprint(b, config, model_digest, digest) for b in buildings]
-        earlier = [finished(out, b.id, fp) for b, fp in zip(buildings, prints)]
+        earlier = [finished(out, b.id, plan["stems"][b.id], fp) for b, fp in zip(buildings, prints)]
         for k, b, rec in zip(members, buildings, earlier):
             if rec is not None:
                 plan["records"][k] = rec
@@ -534,16 +541,16 @@ def _worker_config(config: PipelineConfig) -> PipelineConfig:
     return dataclasses.replace(config, segment=dataclasses.replace(config.segment, threads=1))
 
 
+#: Kind of the output-folder marker of a run (:mod:`lidarmap.io.outdir`).
+KIND = "run"
+#: What a run writes into its output folder (listed in the folder's marker).
+RUN_OUTPUTS = ("buildings", "summary.json", "buildings.city.json")
+
+
 def check_out_dir(out_dir: str | Path) -> Path:
-    """Refuse an output path that is a file, or a non-empty folder that holds no earlier run (nothing to resume)."""
-    out = Path(out_dir)
-    if out.exists():
-        if not out.is_dir():
-            raise InputError("output exists and is not a folder", out)
-        ours = any(out.iterdir()) and ((out / "summary.json").exists() or (out / "buildings").is_dir())
-        if not ours and any(not p.name.startswith(WORK_PREFIX) for p in out.iterdir()):
-            raise InputError("output folder is not empty and holds no earlier run to resume; choose another -o", out)
-    return out
+    """Refuse an output path a run may not write (:func:`lidarmap.io.outdir.claim_out_dir`): a file, a non-empty
+    folder lidarmap did not write, another command's output. An earlier run's folder is resumed."""
+    return claim_out_dir(out_dir, KIND)
 
 
 #: Prefix of the spool folder a run keeps in its output folder while it runs (a killed run's is removed by the next).
@@ -565,9 +572,8 @@ def run_pipeline(tiles: Sequence[str | Path], footprints: Footprints, out_dir: s
     """
 
     started = time.perf_counter()
-    out = check_out_dir(out_dir)
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
+    out = Path(out_dir)
+    created = start_marked_dir(out, KIND, RUN_OUTPUTS)  # marked before anything is written: a killed run resumes
     _remove_stale_work(out)
     run = config.run
     work = Path(tempfile.mkdtemp(prefix=WORK_PREFIX, dir=out))  # the spool: beside the output, on its disk
@@ -575,7 +581,8 @@ def run_pipeline(tiles: Sequence[str | Path], footprints: Footprints, out_dir: s
         spooled = stream_tiles(tiles, footprints, config.prep, crs, work_dir=work,
                                progress=(lambda n: report("read", n, 0)) if report else None)
         model, model_digest = load_segmenter(run)
-        plan: dict[str, Any] = {"records": {}, "skipped": [], "todo": []}
+        stems = unique_stems(e.id for e in spooled.entries)
+        plan: dict[str, Any] = {"records": {}, "skipped": [], "todo": [], "stems": stems}
         failed: dict[str, str] = {}
         processed: list[str] = []
         jobs = _jobs(spooled, building_groups(spooled, run.group_size), out, _worker_config(config), model_digest,
@@ -592,7 +599,7 @@ def run_pipeline(tiles: Sequence[str | Path], footprints: Footprints, out_dir: s
                     failed[spooled.entries[k].id] = result.reason
                     log.warning("building %s failed: %s", spooled.entries[k].id, result.reason)
                 else:
-                    plan["records"][k] = write_building(out, result, fingerprint, run.mesh)
+                    plan["records"][k] = write_building(out, result, fingerprint, run.mesh, stems[result.id])
                     processed.append(result.id)
             done += sum(result is not None for result in results)
             if report:
@@ -603,13 +610,12 @@ def run_pipeline(tiles: Sequence[str | Path], footprints: Footprints, out_dir: s
                            skipped=sorted(plan["skipped"], key=order),
                            failed={k: failed[k] for k in sorted(failed, key=order)},
                            dropped=dict(spooled.dropped), prep=spooled, seconds=time.perf_counter() - started)
-        _write_summary(out, result, config)
-        _write_cityjson(out, result)
+        _write_summary(out, result, config, stems)
+        _write_cityjson(out, result, stems)
         return result
     finally:
         shutil.rmtree(work, ignore_errors=True)
-        if created and out.is_dir() and not any(out.iterdir()):  # refused input: leave no empty folder
-            out.rmdir()
+        abandon_marked_dir(out, created)  # refused input: leave no folder behind
 
 
 def _entry_order(spooled: Any) -> Callable[[str], int]:
@@ -617,7 +623,7 @@ def _entry_order(spooled: Any) -> Callable[[str], int]:
     return lambda building_id: position[building_id]
 
 
-def _write_summary(out: Path, result: RunResult, config: PipelineConfig) -> None:
+def _write_summary(out: Path, result: RunResult, config: PipelineConfig, stems: dict[str, str]) -> None:
     prep = result.prep
     summary = {
         "lidarmap": __version__, "tiles": prep.sources, "crs": None if prep.crs is None else prep.crs.to_wkt(),
@@ -625,11 +631,12 @@ def _write_summary(out: Path, result: RunResult, config: PipelineConfig) -> None
         "processed": result.processed, "skipped_finished": result.skipped, "failed": result.failed,
         "dropped_footprints": result.dropped, "seconds": round(result.seconds, 3),
         "params": config.result_params(), "records": result.records,
+        "folders": {e.id: f"buildings/{stems[e.id]}" for e in prep.entries},
     }
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2, default=_json_default))
 
 
-def _write_cityjson(out: Path, result: RunResult) -> None:
+def _write_cityjson(out: Path, result: RunResult, stems: dict[str, str]) -> None:
     """``buildings.city.json``, streamed: one building's mesh in memory at a time."""
     from lidarmap.export.cityjson import AerialBuilding, write_aerial_cityjson
 
@@ -638,7 +645,7 @@ def _write_cityjson(out: Path, result: RunResult) -> None:
     def buildings() -> Iterator[AerialBuilding]:
         for record in result.records:
             e = by_id[record["id"]]
-            mesh = trimesh.load(building_dir(out, e.id) / "mesh.ply", process=False)
+            mesh = trimesh.load(building_dir(out, stems[e.id]) / "mesh.ply", process=False)
             attributes = {**e.properties, "lidarmap_points": record["output_points"],
                           "lidarmap_building_points": record["building_points"], "lidarmap_voxels": record["voxels"],
                           "lidarmap_height_source": e.height_source}

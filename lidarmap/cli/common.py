@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import os
 import sys
@@ -86,13 +87,28 @@ def handle_errors(func: Callable[..., T]) -> Callable[..., T]:
             fail(str(exc), exc.exit_code)
         except MemoryError:
             fail("out of memory (try smaller chunks or --workers)", 4)
+        except OSError as exc:
+            if exc.errno not in ENVIRONMENT_ERRNOS or exc.filename is None:
+                _internal(exc)
+            fail(f"{exc.filename}: {exc.strerror or exc}", 2)
         except Exception as exc:  # noqa: BLE001 - the last line of defence: no tracebacks for users
-            if os.environ.get("LIDARMAP_DEBUG"):
-                raise
-            fail(f"internal error: {type(exc).__name__}: {exc} (set LIDARMAP_DEBUG=1 for a traceback)", 1)
+            _internal(exc)
         raise AssertionError("unreachable")
 
     return wrapper
+
+
+#: OS errors that are the environment's, not a bug: a read-only or full disk, a missing or forbidden path, a name
+#: too long. With a file name they are one line naming it and exit code 2, like a bad input.
+ENVIRONMENT_ERRNOS = frozenset({errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.ENOENT,
+                                errno.ENOTDIR, errno.EISDIR, errno.ENAMETOOLONG, errno.EEXIST, errno.ENOTEMPTY})
+
+
+def _internal(exc: BaseException) -> None:
+    """A real bug: one line saying so (the traceback with ``LIDARMAP_DEBUG=1``)."""
+    if os.environ.get("LIDARMAP_DEBUG"):
+        raise exc
+    fail(f"internal error: {type(exc).__name__}: {exc} (set LIDARMAP_DEBUG=1 for a traceback)", 1)
 
 
 def progress(transient: bool = False) -> Progress:

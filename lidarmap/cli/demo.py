@@ -11,7 +11,6 @@
 from __future__ import annotations
 
 import math
-import shutil
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -30,8 +29,9 @@ from lidarmap.cli.common import (
 )
 from lidarmap.errors import InputError
 
-#: A file that marks a folder as a demo output, so a later demo may replace it (and nothing else).
-MARKER = "lidarmap-demo.txt"
+#: What a demo writes into its folder (listed in the folder's marker, :mod:`lidarmap.io.outdir`): a later demo
+#: replaces these and nothing else.
+DEMO_OUTPUTS = ("city", "aerial", "city.lmap", "city.lmap.lock", "city.city.json", "renders")
 
 
 def register(app: typer.Typer) -> None:
@@ -67,16 +67,12 @@ def demo_command(
 
 
 def _prepare(out: Path) -> None:
-    """Refuse a folder that is neither empty nor an earlier demo; clear an earlier demo."""
-    if out.exists():
-        if not out.is_dir():
-            raise InputError("demo output exists and is not a folder", out)
-        if any(out.iterdir()):
-            if not (out / MARKER).exists():
-                raise InputError("folder is not empty and is not an earlier demo; choose another --out", out)
-            shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / MARKER).write_text("made by `lidarmap demo`; a later demo replaces this folder\n", encoding="utf-8")
+    """Refuse a folder that is neither empty nor an earlier demo; clear what an earlier demo wrote (only that)."""
+    from lidarmap.io.outdir import claim_out_dir, remove_marked, start_marked_dir
+
+    claim_out_dir(out, "demo", "demo output")
+    remove_marked(out)
+    start_marked_dir(out, "demo", DEMO_OUTPUTS)
 
 
 def _simulate(city: Path, params: Any) -> Any:
