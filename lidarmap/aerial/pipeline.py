@@ -629,7 +629,7 @@ def _write_summary(out: Path, result: RunResult, config: PipelineConfig, stems: 
         "lidarmap": __version__, "tiles": prep.sources, "crs": None if prep.crs is None else prep.crs.to_wkt(),
         "points_read": prep.points_read, "points_kept": prep.points_kept, "buildings": len(result.records),
         "processed": result.processed, "skipped_finished": result.skipped, "failed": result.failed,
-        "dropped_footprints": result.dropped, "seconds": round(result.seconds, 3),
+        "dropped_footprints": result.dropped, "repaired_footprints": prep.repaired, "seconds": round(result.seconds, 3),
         "params": config.result_params(), "records": result.records,
         "folders": {e.id: f"buildings/{stems[e.id]}" for e in prep.entries},
     }

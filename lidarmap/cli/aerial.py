@@ -371,15 +371,9 @@ def _pipeline_config(config: Path | None, *, stages: str | None, method: str | N
     from lidarmap.aerial.pipeline import PipelineConfig, RunParams, check_stage_names
     from lidarmap.aerial.prep import PrepParams
     from lidarmap.aerial.voxel import VoxelParams
-    from lidarmap.config import check_sections, load_toml
     from lidarmap.segment.predict import PredictParams
 
-    tables = {cls.section for cls in (RunParams, PrepParams, PredictParams, DensifyParams, FlattenParams,
-                                      VoxelParams, MeshParams)}
-    try:
-        check_sections(load_toml(config), tables | {"segment_train", "baseline", "facade", "refine", "simulate"})
-    except ConfigError as exc:
-        raise ConfigError(exc.problem, config) from None
+    # params_from refuses tables no command knows (lidarmap.config.KNOWN_TABLES)
     return PipelineConfig(
         run=params_from(RunParams, config, stages=None if stages is None else check_stage_names(stages),
                         method=method, model=None if model is None else str(model), union=union, mesh=mesh,

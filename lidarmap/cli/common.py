@@ -22,7 +22,7 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from lidarmap.config import load_toml, resolve
+from lidarmap.config import KNOWN_TABLES, check_sections, load_toml, resolve
 from lidarmap.errors import ConfigError, LidarmapError
 
 console = Console()
@@ -42,7 +42,8 @@ P = TypeVar("P")
 ConfigOption = typer.Option(None, "--config", "-c", help="TOML config file; command-line flags override it.",
                             exists=False, dir_okay=False)
 #: ``--seed`` option shared by every command that draws random numbers.
-SeedOption = typer.Option(None, "--seed", help="Random seed: the same input and seed give the same output.")
+SeedOption = typer.Option(None, "--seed", min=0, help="Random seed (>= 0): the same input and seed give the same "
+                          "output.")
 #: ``--crs`` option of every command that reads LAS/LAZ (for files without a CRS record, e.g. AHN).
 CrsOption = typer.Option(None, "--crs", help="CRS of inputs that carry none, e.g. EPSG:28992.")
 #: Required ``--footprints`` option of the commands that split by building.
@@ -57,7 +58,9 @@ def params_from(params_cls: type[P], config_path: Path | None, section: str | No
     A bad value or unknown key in the file is an error naming the file.
     """
     try:
-        return resolve(params_cls, load_toml(config_path), section, **flags)
+        config = load_toml(config_path)
+        check_sections(config, KNOWN_TABLES | {section or getattr(params_cls, "section", "")})
+        return resolve(params_cls, config, section, **flags)
     except ConfigError as exc:
         if exc.path is None and config_path is not None:
             raise ConfigError(exc.problem, config_path) from None

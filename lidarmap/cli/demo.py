@@ -27,7 +27,6 @@ from lidarmap.cli.common import (
     progress,
     table_console,
 )
-from lidarmap.errors import InputError
 
 #: What a demo writes into its folder (listed in the folder's marker, :mod:`lidarmap.io.outdir`): a later demo
 #: replaces these and nothing else.

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +39,8 @@ def read_footprints(path: str | Path, id_field: str = "id", crs: CRS | None = No
 
     The CRS is the legacy ``crs`` member when present, else WGS84 (RFC 7946). The building id comes from
     property ``id_field`` (or the feature's ``id``), falling back to the feature index. With ``crs`` the footprints
-    are reprojected to it.
+    are reprojected to it. Features without a usable polygon are left out and listed in ``rejected`` with the reason
+    (prep and run report them); repaired self-intersecting polygons are listed in ``repaired``.
     """
     path = Path(path)
     if not path.exists():
@@ -55,37 +57,64 @@ def read_footprints(path: str | Path, id_field: str = "id", crs: CRS | None = No
         raise InputError("not a GeoJSON FeatureCollection", path)
     source_crs = _legacy_crs(doc, path) or WGS84
     ids, polys, props = [], [], []
+    rejected: dict[str, str] = {}
+    repaired: list[str] = []
     seen: set[str] = set()
     for index, feature in enumerate(features):
-        geom_doc = (feature or {}).get("geometry")
-        if not geom_doc or geom_doc.get("type") not in ("Polygon", "MultiPolygon"):
-            continue
-        try:
-            geom = shape(geom_doc)
-        except Exception as exc:  # noqa: BLE001
-            raise InputError(f"feature {index}: invalid geometry ({exc})", path) from None
-        if geom.is_empty:
-            continue
-        if not geom.is_valid:
-            geom = shapely.make_valid(geom)
-            geom = MultiPolygon([g for g in getattr(geom, "geoms", [geom]) if isinstance(g, Polygon)]) \
-                if geom.geom_type not in ("Polygon", "MultiPolygon") else geom
+        feature = feature if isinstance(feature, dict) else {}
         properties = dict(feature.get("properties") or {})
         raw_id = properties.get(id_field, feature.get("id") if id_field == "id" else None)
         fid = str(raw_id) if raw_id is not None else str(index)
+        geom, problem = _polygon_of(feature.get("geometry"), index, path)
+        if geom is None:
+            rejected[fid if fid not in rejected else f"{fid}_{index}"] = problem
+            continue
         if fid in seen:
             fid = f"{fid}_{index}"
         seen.add(fid)
+        if problem:
+            repaired.append(fid)
         ids.append(fid)
         polys.append(geom)
         props.append(properties)
     if not ids:
-        raise InputError("no polygon footprints in file", path)
-    coords = shapely.get_coordinates(np.array(polys, dtype=object))
-    if not np.all(np.isfinite(coords)):
-        raise InputError("NaN or infinite footprint coordinates", path)
-    result = Footprints(ids, np.array(polys, dtype=object), props, source_crs, str(path))
+        first = f" ({len(rejected)} feature(s) unusable, e.g. {next(iter(rejected.values()))})" if rejected else ""
+        raise InputError(f"no polygon footprints in file{first}", path)
+    result = Footprints(ids, np.array(polys, dtype=object), props, source_crs, str(path), rejected, repaired)
     return result.to_crs(crs) if crs is not None else result
+
+
+def _polygon_of(geom_doc: Any, index: int, path: Path) -> tuple[Polygon | MultiPolygon | None, str]:
+    """A feature's usable (Multi)Polygon and "" / "repaired ..." , or ``None`` and why it cannot be used: null, empty
+    or non-polygon geometry, a NaN or infinite vertex, zero area. A self-intersecting polygon is repaired with
+    ``shapely.make_valid`` (its polygonal parts kept) and reported as repaired."""
+    if not geom_doc:
+        return None, "null geometry"
+    kind = geom_doc.get("type") if isinstance(geom_doc, dict) else None
+    if kind not in ("Polygon", "MultiPolygon"):
+        return None, f"{kind or 'unknown'} geometry, not a polygon"
+    if not geom_doc.get("coordinates"):
+        return None, "empty geometry"
+    try:
+        with warnings.catch_warnings():  # NaN vertices: numpy warns before we can say which feature
+            warnings.simplefilter("ignore", RuntimeWarning)
+            geom = shape(geom_doc)
+    except Exception as exc:  # noqa: BLE001 - shapely raises several kinds for malformed coordinates
+        raise InputError(f"feature {index}: invalid geometry ({exc})", path) from None
+    if geom.is_empty:
+        return None, "empty geometry"
+    if not np.all(np.isfinite(shapely.get_coordinates(geom))):
+        return None, "NaN or infinite vertex"
+    problem = ""
+    if not geom.is_valid:
+        problem = f"repaired ({shapely.is_valid_reason(geom)})"
+        fixed = shapely.make_valid(geom)
+        parts = [g for g in getattr(fixed, "geoms", [fixed]) if isinstance(g, (Polygon, MultiPolygon))]
+        parts = [p for g in parts for p in getattr(g, "geoms", [g])]
+        geom = parts[0] if len(parts) == 1 else MultiPolygon(parts)
+    if geom.is_empty or not geom.area > 0:
+        return None, "zero area"
+    return geom, problem
 
 
 def check_overlap(footprints: Footprints, bounds: tuple[float, float, float, float], points_name: str) -> None:

@@ -4,8 +4,8 @@
 from __future__ import annotations
 
 import csv
-import hashlib
 import dataclasses
+import hashlib
 import io
 import json
 import math
@@ -106,7 +106,7 @@ def write_prep(out_dir: str | Path, result: Any,
             "crs": describe_crs(result.crs), "params": dataclasses.asdict(result.params),
             "points_read": result.points_read, "points_kept": result.points_kept,
             "footprint_count": result.footprints, "buildings": len(result.buildings),
-            "dropped": result.dropped, "seconds": round(result.seconds, 3),
+            "dropped": result.dropped, "repaired": list(result.repaired), "seconds": round(result.seconds, 3),
         }
         write_text_atomic(tmp / SUMMARY, json.dumps(summary, indent=2))
     return out

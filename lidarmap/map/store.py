@@ -648,8 +648,12 @@ class MapStore:
     def __enter__(self) -> "MapStore":
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: object, exc: BaseException | None, tb: object) -> None:
         self.close()
+        if isinstance(exc, sqlite3.DatabaseError) and not isinstance(exc, (sqlite3.OperationalError,
+                                                                          sqlite3.IntegrityError)):
+            # a damaged page is found only when it is read: say which file (sqlite's message names none)
+            raise InputError(f"damaged map: {exc}; restore it from a backup", self.path) from None
 
     def __repr__(self) -> str:
         return f"MapStore({str(self.path)!r})"
