@@ -157,7 +157,7 @@ def load_map(map_path: Path, as_of: int | None, building: str | None = None) -> 
     """The stored map (as of a campaign), optionally reduced to one building (unknown id: one-line error)."""
     from lidarmap.map.store import MapStore
 
-    with MapStore.open(map_path) as store:
+    with MapStore.open(map_path, readonly=True) as store:
         building_map = store.load(as_of=as_of)
     if building is not None:
         if building not in building_map.buildings:
@@ -251,7 +251,7 @@ def history_command(map_path: Path = MapArgument) -> None:
     """One row per campaign: what it was and what it changed (added ~updated -removed per entity)."""
     from lidarmap.map.store import ENTITIES, MapStore
 
-    with MapStore.open(map_path) as store:
+    with MapStore.open(map_path, readonly=True) as store:
         history = store.history()
     table = Table(title=f"{map_path.name}: {len(history)} campaign(s)", title_justify="left")
     for column in ("campaign", "kind", "source", "points", "created", "changes", "map after it"):

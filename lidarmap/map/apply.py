@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+import glob
 import logging
+import shutil
 import tempfile
 import time
 from collections.abc import Callable
@@ -154,10 +156,22 @@ def _new_map(stored: BuildingMap, points: _Points, footprints: Footprints, input
     if inputs.kind == "aerial":
         return _Fused(refine.add_aerial(stored, points.cloud, footprints, refine_params, campaign_id, seed), {})
     trajectory = read_trajectory(inputs.trajectory)
-    with tempfile.TemporaryDirectory(dir=map_path.resolve().parent, prefix=f".{map_path.name}.spool-") as spool:
+    with tempfile.TemporaryDirectory(dir=map_path.resolve().parent, prefix=_spool_prefix(map_path)) as spool:
         fused = fuse_campaign(stored, points.stream, trajectory, footprints, facade_params, refine_params,
                               campaign_id, seed, update=update, spool_dir=Path(spool) / "points", progress=progress)
     return _Fused(fused.map, fused.failed)
+
+
+def _spool_prefix(map_path: Path) -> str:
+    """The spool folder beside the map during a mobile update: ``.<map name>.spool-XXXX``."""
+    return f".{map_path.name}.spool-"
+
+
+def _remove_stale_spools(map_path: Path) -> None:
+    """Spools of earlier updates that were killed (``kill -9`` skips the cleanup): the caller holds the map's writer
+    lock, so no other update of this map is running and every spool of it is stale."""
+    for stale in map_path.resolve().parent.glob(f"{glob.escape(_spool_prefix(map_path))}*"):
+        shutil.rmtree(stale, ignore_errors=True)
 
 
 @dataclasses.dataclass
@@ -194,6 +208,7 @@ def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, An
     update = update or UpdateParams()
     started = time.perf_counter()
     with writer_lock(map_path):
+        _remove_stale_spools(map_path)
         store = MapStore.open(map_path) if map_path.exists() else None
         try:
             step("fingerprint")

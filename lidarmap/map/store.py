@@ -437,15 +437,24 @@ def _acquire_lock_file(lock_path: Path, map_path: str | Path) -> int | None:
 
 
 def _release_lock_file(fd: int, lock_path: Path, map_path: str | Path) -> None:
-    """Unlock; the lock file goes too when there is no map (a first update that failed leaves nothing behind)."""
+    """Unlock; the lock file goes too when there is no map (a first update that failed, or one given a file that is
+    not a map, leaves nothing behind)."""
     import fcntl
 
-    if not Path(map_path).exists():
+    if not _is_sqlite_file(Path(map_path)):
         with contextlib.suppress(OSError):
             lock_path.unlink()  # while still locked: a process that opened it before sees it is stale
     with contextlib.suppress(OSError):
         fcntl.flock(fd, fcntl.LOCK_UN)
     os.close(fd)
+
+
+def _is_sqlite_file(path: Path) -> bool:
+    try:
+        with path.open("rb") as fh:
+            return fh.read(len(_SQLITE_MAGIC)) == _SQLITE_MAGIC
+    except OSError:
+        return False
 
 
 @contextlib.contextmanager
@@ -538,8 +547,8 @@ class MapStore:
     # -- opening -------------------------------------------------------------------------------------------------------
 
     @staticmethod
-    def _connect(path: Path, busy_timeout: float) -> sqlite3.Connection:
-        uri = "file:" + str(path.resolve()).replace("?", "%3f").replace("#", "%23") + "?mode=rw"
+    def _connect(path: Path, busy_timeout: float, mode: str = "mode=rw") -> sqlite3.Connection:
+        uri = "file:" + str(path.resolve()).replace("?", "%3f").replace("#", "%23") + "?" + mode
         conn = sqlite3.connect(uri, uri=True, timeout=busy_timeout, isolation_level=None, check_same_thread=False)
         conn.row_factory = sqlite3.Row
         conn.execute("PRAGMA foreign_keys = ON")
@@ -595,8 +604,13 @@ class MapStore:
         return cls.open(path, busy_timeout)
 
     @classmethod
-    def open(cls, path: str | Path, busy_timeout: float = BUSY_TIMEOUT_S) -> "MapStore":
-        """Open an existing map; one-line errors for a missing file, a file that is not a map, a newer schema."""
+    def open(cls, path: str | Path, busy_timeout: float = BUSY_TIMEOUT_S, readonly: bool = False) -> "MapStore":
+        """Open an existing map; one-line errors for a missing file, a file that is not a map, a newer schema.
+
+        ``readonly`` (show, history, export, render): nothing is written, not even SQLite's shared-memory file, so a
+        map on a read-only disk or in a folder the user may not write can be read; where the shared-memory file
+        cannot be made the map is read as it is on disk (``immutable``: only safe because nobody can write there).
+        """
         path = Path(path)
         if not path.exists():
             raise InputError("map not found", path)
@@ -609,10 +623,18 @@ class MapStore:
             raise InputError(f"cannot read map ({exc.strerror})", path) from None
         if head != _SQLITE_MAGIC:
             raise InputError("not a lidarmap map (not an SQLite database)", path)
-        try:
-            conn = cls._connect(path, busy_timeout)
-        except sqlite3.Error as exc:
-            raise InputError(f"cannot open map ({exc})", path) from None
+        modes = ["mode=ro", "mode=ro&immutable=1"] if readonly else ["mode=rw"]
+        for k, mode in enumerate(modes):
+            try:
+                conn = cls._connect(path, busy_timeout, mode)
+                conn.execute("SELECT 1 FROM sqlite_master LIMIT 1").fetchall()
+                break
+            except sqlite3.OperationalError as exc:
+                if k + 1 < len(modes) and not os.access(path.parent, os.W_OK):
+                    continue
+                raise InputError(f"cannot open map ({exc})", path) from None
+            except sqlite3.Error as exc:
+                raise InputError(f"cannot open map ({exc})", path) from None
         try:
             try:
                 row = conn.execute("SELECT version FROM schema_version").fetchone()
@@ -631,7 +653,7 @@ class MapStore:
             if version < SCHEMA_VERSION:  # pragma: no cover - no older layout exists yet
                 raise InputError(f"map schema version {version} is too old (this lidarmap reads {SCHEMA_VERSION})",
                                  path)
-            if conn.execute("PRAGMA journal_mode").fetchone()[0].lower() != "wal":
+            if not readonly and conn.execute("PRAGMA journal_mode").fetchone()[0].lower() != "wal":
                 with contextlib.suppress(sqlite3.OperationalError):
                     conn.execute("PRAGMA journal_mode = WAL")
             return cls(path, conn)
