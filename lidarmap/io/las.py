@@ -18,6 +18,8 @@ from lidarmap.errors import CRSError, InputError
 from lidarmap.io.atomic import atomic_path
 from lidarmap.io.crs import parse_crs, same_crs
 
+#: Largest coordinate a header's scale and offset may reach (m or degrees): beyond any CRS on Earth.
+MAX_COORDINATE = 1e12
 #: Default number of points per chunk when streaming.
 CHUNK_POINTS = 2_000_000
 
@@ -45,6 +47,11 @@ def _open(path: Path) -> laspy.LasReader:
     if np.any(np.asarray(header.scales) == 0):
         reader.close()
         raise InputError("header has a zero scale factor", path)
+    reach = max(abs(float(o)) + abs(float(s)) * 2.0**31 for o, s in zip(header.offsets, header.scales))
+    if not reach < MAX_COORDINATE:  # Python floats: an absurd scale gives inf here, not numpy overflow warnings
+        reader.close()
+        raise InputError(f"header scale {list(map(float, header.scales))} / offset {list(map(float, header.offsets))} "
+                         f"give coordinates beyond ±{MAX_COORDINATE:g} (damaged header?)", path)
     return reader
 
 

@@ -14,6 +14,7 @@ import datetime as dt
 import glob
 import logging
 import shutil
+import sqlite3
 import tempfile
 import time
 from collections.abc import Callable
@@ -32,7 +33,7 @@ from lidarmap.io.las import read_las
 from lidarmap.io.trajectory import read_trajectory
 from lidarmap.map import refine
 from lidarmap.map.model import BuildingMap, Campaign
-from lidarmap.map.store import MapStore, campaign_fingerprint, writer_lock
+from lidarmap.map.store import MapStore, campaign_fingerprint, damaged_map_error, writer_lock
 from lidarmap.map.update import UpdateParams, fuse_campaign, las_source
 
 log = logging.getLogger(__name__)
@@ -155,7 +156,7 @@ def _new_map(stored: BuildingMap, points: _Points, footprints: Footprints, input
     facade_params, refine_params = params
     if inputs.kind == "aerial":
         return _Fused(refine.add_aerial(stored, points.cloud, footprints, refine_params, campaign_id, seed), {})
-    trajectory = read_trajectory(inputs.trajectory)
+    trajectory = read_trajectory(inputs.trajectory, update.trajectory_warn_gap, update.trajectory_max_gap)
     with tempfile.TemporaryDirectory(dir=map_path.resolve().parent, prefix=_spool_prefix(map_path)) as spool:
         fused = fuse_campaign(stored, points.stream, trajectory, footprints, facade_params, refine_params,
                               campaign_id, seed, update=update, spool_dir=Path(spool) / "points", progress=progress)
@@ -235,6 +236,11 @@ def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, An
                 store = MapStore.create(map_path, crs.to_wkt())
             changes = store.commit(new_map, campaign)
             log.info("%s: campaign %d (%s) committed: %s", map_path, campaign_id, inputs.source, counts)
+        except sqlite3.DatabaseError as exc:
+            damaged = damaged_map_error(exc, map_path)
+            if damaged is None:
+                raise
+            raise damaged from None
         finally:
             if store is not None:
                 store.close()

@@ -68,7 +68,7 @@ from lidarmap.io.atomic import current_umask
 from lidarmap.map.model import Building, BuildingMap, Campaign, RoofPlane
 
 __all__ = ["MapStore", "SCHEMA_VERSION", "APPLICATION_ID", "ENTITIES", "campaign_fingerprint", "writer_lock",
-           "lock_path_for"]
+           "lock_path_for", "damaged_map_error"]
 
 #: Version of the table layout; a map written by a newer lidarmap (higher version) is refused.
 SCHEMA_VERSION = 1
@@ -449,6 +449,15 @@ def _release_lock_file(fd: int, lock_path: Path, map_path: str | Path) -> None:
     os.close(fd)
 
 
+def damaged_map_error(exc: BaseException | None, path: str | Path) -> InputError | None:
+    """The one-line error naming the map for SQLite's "database disk image is malformed" (a damaged page is found
+    only when it is read, and SQLite's message names no file); ``None`` for any other exception."""
+    if isinstance(exc, sqlite3.DatabaseError) and not isinstance(exc, (sqlite3.OperationalError,
+                                                                      sqlite3.IntegrityError)):
+        return InputError(f"damaged map: {exc}; restore it from a backup", path)
+    return None
+
+
 def _is_sqlite_file(path: Path) -> bool:
     try:
         with path.open("rb") as fh:
@@ -607,9 +616,10 @@ class MapStore:
     def open(cls, path: str | Path, busy_timeout: float = BUSY_TIMEOUT_S, readonly: bool = False) -> "MapStore":
         """Open an existing map; one-line errors for a missing file, a file that is not a map, a newer schema.
 
-        ``readonly`` (show, history, export, render): nothing is written, not even SQLite's shared-memory file, so a
-        map on a read-only disk or in a folder the user may not write can be read; where the shared-memory file
-        cannot be made the map is read as it is on disk (``immutable``: only safe because nobody can write there).
+        ``readonly`` (show, history, export, render): a map on a read-only disk or in a folder the user may not write
+        is opened read-only, and where SQLite cannot make its shared-memory file there, read as it is on disk
+        (``immutable``: safe because nobody can write there). Elsewhere the usual connection, which leaves no
+        ``-wal``/``-shm`` files behind when it closes.
         """
         path = Path(path)
         if not path.exists():
@@ -623,14 +633,15 @@ class MapStore:
             raise InputError(f"cannot read map ({exc.strerror})", path) from None
         if head != _SQLITE_MAGIC:
             raise InputError("not a lidarmap map (not an SQLite database)", path)
-        modes = ["mode=ro", "mode=ro&immutable=1"] if readonly else ["mode=rw"]
+        writable = os.access(path, os.W_OK) and os.access(path.parent, os.W_OK)
+        modes = ["mode=ro", "mode=ro&immutable=1"] if readonly and not writable else ["mode=rw"]
         for k, mode in enumerate(modes):
             try:
                 conn = cls._connect(path, busy_timeout, mode)
                 conn.execute("SELECT 1 FROM sqlite_master LIMIT 1").fetchall()
                 break
             except sqlite3.OperationalError as exc:
-                if k + 1 < len(modes) and not os.access(path.parent, os.W_OK):
+                if k + 1 < len(modes):
                     continue
                 raise InputError(f"cannot open map ({exc})", path) from None
             except sqlite3.Error as exc:
@@ -653,7 +664,7 @@ class MapStore:
             if version < SCHEMA_VERSION:  # pragma: no cover - no older layout exists yet
                 raise InputError(f"map schema version {version} is too old (this lidarmap reads {SCHEMA_VERSION})",
                                  path)
-            if not readonly and conn.execute("PRAGMA journal_mode").fetchone()[0].lower() != "wal":
+            if "mode=rw" in modes and conn.execute("PRAGMA journal_mode").fetchone()[0].lower() != "wal":
                 with contextlib.suppress(sqlite3.OperationalError):
                     conn.execute("PRAGMA journal_mode = WAL")
             return cls(path, conn)
@@ -672,10 +683,9 @@ class MapStore:
 
     def __exit__(self, exc_type: object, exc: BaseException | None, tb: object) -> None:
         self.close()
-        if isinstance(exc, sqlite3.DatabaseError) and not isinstance(exc, (sqlite3.OperationalError,
-                                                                          sqlite3.IntegrityError)):
-            # a damaged page is found only when it is read: say which file (sqlite's message names none)
-            raise InputError(f"damaged map: {exc}; restore it from a backup", self.path) from None
+        damaged = damaged_map_error(exc, self.path)
+        if damaged is not None:
+            raise damaged from None
 
     def __repr__(self) -> str:
         return f"MapStore({str(self.path)!r})"
