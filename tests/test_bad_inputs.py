@@ -30,6 +30,7 @@ from shapely.geometry import box, mapping
 from lidarmap.core import PointCloud
 from lidarmap.io.las import write_las
 from lidarmap.io.outdir import MARKER, read_marker
+from lidarmap.io.voxels import read_voxels
 
 UTM = CRS.from_epsg(32632)
 X0, Y0 = 500000.0, 5800000.0
@@ -607,7 +608,7 @@ def test_the_corpus_has_more_than_100_cases() -> None:
 def test_bad_input(world: dict[str, Path], tmp_path: Path, name: str) -> None:
     argv, needles = CASES[name](world, tmp_path)
     before = snapshot(tmp_path)
-    code, out, err = run(*argv)
+    code, _, err = run(*argv)
     lines = err.strip().splitlines()
     assert code == 2, f"exit {code}: {err}"
     assert len(lines) == 1, err
@@ -616,10 +617,134 @@ def test_bad_input(world: dict[str, Path], tmp_path: Path, name: str) -> None:
         assert needle in lines[0], lines[0]
     after = snapshot(tmp_path)
     # nothing deleted or changed; nothing new but the advisory lock file kept beside an existing map
-    assert {k: v for k, v in after.items() if not k.endswith(".lmap.lock")} == before
+    maps = {f"{k}.lock" for k, v in before.items() if v and v.startswith(b"SQLite format 3\0")}
+    assert {k: v for k, v in after.items() if k not in maps} == before
 
 
 def test_the_shared_inputs_are_untouched(world: dict[str, Path]) -> None:
     """After the corpus (this file's order): no case changed the good inputs, the map or the prep output."""
     assert snapshot(world["dir"]) == world["state"]
     assert read_marker(world["prep"])["kind"] == "prep" and "prep.json" in read_marker(world["prep"])["written"]
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Inputs that are not refused: what they must do instead
+
+
+def test_prep_replaces_only_what_it_wrote(world: dict[str, Path], tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    assert run("prep", world["laz"], "-f", world["fp"], "-o", out, "--min-height", "0")[0] == 0
+    (out / "docs").mkdir()
+    (out / "docs" / "thesis.tex").write_text("years of work\n")
+    (out / "notes.txt").write_text("mine\n")
+    victim = tmp_path / "victim.txt"
+    victim.write_text("outside\n")
+    marker = json.loads((out / MARKER).read_text())
+    (out / MARKER).write_text(json.dumps({**marker, "written": [*marker["written"], "../victim.txt", "/etc"]}))
+    only_a = _geojson(tmp_path / "a.geojson", [_feature("a", _box(2, 2, 18, 18))])
+    code, _, err = run("prep", world["laz"], "-f", only_a, "-o", out, "--min-height", "0")
+    assert code == 0, err
+    assert sorted(p.name for p in (out / "buildings").iterdir()) == ["a.laz"]  # the earlier b.laz went
+    assert (out / "docs" / "thesis.tex").read_text() == "years of work\n" and (out / "notes.txt").exists()
+    assert victim.exists()  # a marker never points outside its folder
+    assert read_marker(out)["written"] == ["buildings", "buildings.csv", "frame.json", "prep.json"]
+
+
+def test_prep_lists_unusable_footprints_and_repairs_self_intersecting_ones(world: dict[str, Path],
+                                                                          tmp_path: Path) -> None:
+    bow_tie = {"type": "Polygon", "coordinates": [[[X0 + 2, Y0 + 2], [X0 + 18, Y0 + 18], [X0 + 18, Y0 + 2],
+                                                   [X0 + 2, Y0 + 18], [X0 + 2, Y0 + 2]]]}
+    fps = _geojson(tmp_path / "mixed.geojson", [
+        _feature("bow", bow_tie), _feature("b", _box(22, 2, 38, 18)), _feature("null", None),
+        _feature("point", {"type": "Point", "coordinates": [X0, Y0]}),
+        _feature("empty", {"type": "Polygon", "coordinates": []}),
+        _feature("flat", {"type": "Polygon", "coordinates": [[[X0, Y0], [X0 + 1, Y0], [X0 + 2, Y0], [X0, Y0]]]}),
+        _feature("nan", {"type": "Polygon", "coordinates": [[[X0, Y0], [float("nan"), Y0], [X0, Y0 + 1],
+                                                             [X0, Y0]]]})])
+    code, _, err = run("prep", world["laz"], "-f", fps, "-o", tmp_path / "out", "--min-height", "0")
+    assert code == 0 and err == "", err
+    summary = json.loads((tmp_path / "out" / "prep.json").read_text())
+    assert summary["dropped"] == {"null": "null geometry", "point": "Point geometry, not a polygon",
+                                  "empty": "empty geometry", "flat": "zero area", "nan": "NaN or infinite vertex"}
+    assert summary["repaired"] == ["bow"]
+    index = (tmp_path / "out" / "buildings.csv").read_text().splitlines()
+    assert [row.split(",")[0] for row in index[1:]] == ["bow", "b"]
+
+
+#: Ids that collide once made file-safe, and two long ones that share their first 299 characters.
+HOSTILE_IDS = ["a/b", "a\nb", "a_b", "A_B", "..", "", ".", "x" * 299 + "1", "x" * 299 + "2"]
+
+
+def _many_buildings(folder: Path) -> tuple[Path, Path]:
+    """Nine 6 m x 6 m box buildings (one per hostile id) on a 3 x 3 grid, 150 points each, on ground."""
+    rng = np.random.default_rng(2)
+    xyz, cls, features = [], [], []
+    for k, fid in enumerate(HOSTILE_IDS):
+        x0, y0 = 10.0 * (k % 3), 10.0 * (k // 3)
+        roof = rng.uniform([x0 + 0.2, y0 + 0.2], [x0 + 5.8, y0 + 5.8], size=(150, 2))
+        ground = rng.uniform([x0 - 2, y0 - 2], [x0 + 8, y0 + 8], size=(60, 2))
+        ground = ground[~shapely.contains_xy(box(x0, y0, x0 + 6, y0 + 6), ground[:, 0], ground[:, 1])]
+        xyz += [np.column_stack([roof, np.full(len(roof), 20.0)]), np.column_stack([ground, np.full(len(ground),
+                                                                                                    10.0)])]
+        cls += [np.full(len(roof), 6, np.uint8), np.full(len(ground), 2, np.uint8)]
+        features.append(_feature(fid, _box(x0, y0, x0 + 6, y0 + 6)))
+    features.append(_feature("nothing", None))
+    cloud = PointCloud(np.concatenate(xyz) + [X0, Y0, 0], {"classification": np.concatenate(cls)}, UTM)
+    return write_las(folder / "many.laz", cloud), _geojson(folder / "many.geojson", features)
+
+
+def test_run_keeps_colliding_and_long_ids_apart_and_resumes_them(tmp_path: Path) -> None:
+    laz, fps = _many_buildings(tmp_path)
+    out = tmp_path / "run"
+    args = ["run", laz, "-f", fps, "-o", out, "--method", "baseline", "--stages", "none", "--mesh", "voxels"]
+    code, _, err = run(*args)
+    assert code == 0, err
+    summary = json.loads((out / "summary.json").read_text())
+    folders = summary["folders"]
+    assert sorted(folders) == sorted(HOSTILE_IDS) and len(set(folders.values())) == len(HOSTILE_IDS)
+    assert sorted(summary["processed"]) == sorted(HOSTILE_IDS)
+    assert summary["dropped_footprints"]["nothing"] == "null geometry"
+    for fid, folder in folders.items():
+        record = json.loads((out / folder / "building.json").read_text())
+        assert record["id"] == fid and record["folder"] == folder
+        assert len(Path(folder).name) <= 100
+    assert folders["a/b"] == "buildings/a_b" and folders["a\nb"] == "buildings/a_b_2"
+    assert folders[".."] == "buildings/building" and folders[""] == "buildings/building_2"
+    assert folders["x" * 299 + "1"] != folders["x" * 299 + "2"]
+    code, _, err = run(*args)  # resumed: every building found finished, none recomputed
+    assert code == 0, err
+    again = json.loads((out / "summary.json").read_text())
+    assert again["processed"] == [] and sorted(again["skipped_finished"]) == sorted(HOSTILE_IDS)
+
+
+def test_stage_command_rerun_replaces_its_outputs_and_keeps_the_users(world: dict[str, Path],
+                                                                      tmp_path: Path) -> None:
+    out = tmp_path / "vox"
+    assert run("voxelize", world["laz"], "-o", out)[0] == 0
+    (out / "mine.txt").write_text("mine\n")
+    code, _, err = run("voxelize", world["laz"], "-o", out, "--size", "2")
+    assert code == 0, err
+    assert (out / "mine.txt").read_text() == "mine\n"
+    assert read_voxels(out / "tile.voxels.npz").size == 2.0
+    assert read_marker(out) == {"kind": "voxelize", "lidarmap": read_marker(out)["lidarmap"],
+                                "written": ["tile.vox", "tile.voxels.npz"]}
+
+
+def test_update_removes_stale_spools_and_warns_of_trajectory_holes(world: dict[str, Path], tmp_path: Path,
+                                                                   caplog: pytest.LogCaptureFixture) -> None:
+    path = tmp_path / "city.lmap"
+    shutil.copyfile(world["map"], path)
+    stale = tmp_path / ".city.lmap.spool-k1ll3d"
+    (stale / "points").mkdir(parents=True)
+    (stale / "points" / "0.npy").write_bytes(b"\0" * 4100)
+    other = tmp_path / ".other.lmap.spool-abc"  # another map's: not ours to remove
+    other.mkdir()
+    hole = _hole(world, tmp_path, 3.0)
+    with caplog.at_level("WARNING", logger="lidarmap.io.trajectory"):
+        code, _, err = run("map", "update", path, "--points", world["mls"], "--trajectory", hole, "--footprints",
+                           world["mfp"])
+    assert code == 0, err
+    assert not stale.exists() and other.exists()
+    warnings = [r.getMessage() for r in caplog.records if r.name == "lidarmap.io.trajectory"]
+    assert len(warnings) == 1 and "hole3.csv" in warnings[0] and "3.0 s hole" in warnings[0], warnings
+    assert "\n" not in warnings[0]

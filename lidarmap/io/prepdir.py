@@ -36,11 +36,16 @@ def safe_stem(building_id: str) -> str:
     """A file-name stem for a building id: characters other than letters, digits, ``.-_`` become ``_``; a stem
     that is empty or only dots becomes ``building``; one longer than :data:`MAX_STEM` is cut and ends with a hash of
     the whole id (two long ids that share a beginning stay apart)."""
-    stem = re.sub(r"[^A-Za-z0-9._-]", "_", str(building_id)).strip(".") or "building"
-    if len(stem) > MAX_STEM:
-        digest = hashlib.sha256(str(building_id).encode("utf-8", "surrogatepass")).hexdigest()[:12]
-        stem = f"{stem[:MAX_STEM - 13]}_{digest}"
-    return stem
+    return shorten_stem(re.sub(r"[^A-Za-z0-9._-]", "_", str(building_id)).strip(".") or "building", building_id)
+
+
+def shorten_stem(stem: str, building_id: str) -> str:
+    """``stem`` cut to :data:`MAX_STEM` characters when longer, ending with a hash of the whole id (so that two long
+    ids that share a beginning stay apart)."""
+    if len(stem) <= MAX_STEM:
+        return stem
+    digest = hashlib.sha256(str(building_id).encode("utf-8", "surrogatepass")).hexdigest()[:12]
+    return f"{stem[:MAX_STEM - 13]}_{digest}"
 
 
 def unique_stems(building_ids: Iterable[str]) -> dict[str, str]:
