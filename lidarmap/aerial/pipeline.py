@@ -7,7 +7,8 @@
       -> per group of neighbouring buildings, one task (this process, or a dask worker): segmentation of their
          points with the kept points of the buildings around them as context; then per building densify / flatten
          (order configurable) -> voxelize (majority label) -> meshes
-      -> this process writes OUT/buildings/<id>/, OUT/summary.json, OUT/buildings.city.json
+      -> this process writes OUT/buildings/<id>/, OUT/summary.json, OUT/buildings.city.json,
+         OUT/buildings.gpkg (every footprint with its status, for a GIS)
 
 Memory is bounded by the largest group plus its context, a chunk of input and a few tasks in flight, not by the
 input size (docs/cluster.md).
@@ -47,6 +48,7 @@ from pyproj import CRS
 from lidarmap._version import __version__
 from lidarmap.aerial.densify import DensifyParams, densify
 from lidarmap.aerial.flatten import FlattenParams, flatten_points
+from lidarmap.aerial.gislayer import write_buildings_gpkg
 from lidarmap.aerial.mesh import MeshParams, surface_mesh, voxel_mesh
 from lidarmap.aerial.prep import (
     BuildingPoints,
@@ -605,6 +607,7 @@ def run_pipeline(tiles: Sequence[str | Path], footprints: Footprints, out_dir: s
                            dropped=dict(spooled.dropped), prep=spooled, seconds=time.perf_counter() - started)
         _write_summary(out, result, config)
         _write_cityjson(out, result)
+        write_buildings_gpkg(result, footprints, building_dir)
         return result
     finally:
         shutil.rmtree(work, ignore_errors=True)
