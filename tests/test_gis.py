@@ -7,15 +7,21 @@ import builtins
 import sqlite3
 from pathlib import Path
 
+import laspy
 import numpy as np
 import pytest
 import shapely
-from pyproj import CRS
+import trimesh
+from pyproj import CRS, Transformer
 from shapely.geometry import MultiPolygon, Polygon, box
 
+import lidarmap
+from lidarmap.core import PointCloud
 from lidarmap.errors import CRSError, InputError
 from lidarmap.io.footprints import read_footprints
 from lidarmap.io.gpkg import write_gpkg_polygons
+from lidarmap.io.las import EXTRA_DIMS, read_las, write_las
+from lidarmap.io.meshfile import read_ply_crs, write_mesh
 
 pyogrio = pytest.importorskip("pyogrio", reason="pyogrio is in the test extra (pip install -e '.[test]')")
 
@@ -96,11 +102,12 @@ def test_geopackage_writer_round_trips_through_gdal(tmp_path: Path) -> None:
     assert list(info["fields"]) == ["id", "coverage", "points", "reason"]
     assert info["ogr_types"] == ["OFTString", "OFTReal", "OFTInteger64", "OFTString"]
     assert info["total_bounds"] == (85000.0, 446000.0, 85070.0, 446020.0)
-    meta, _, wkb, (ids, coverage, points, reason) = pyogrio.raw.read(out)
+    _, _, wkb, (ids, coverage, points, reason) = pyogrio.raw.read(out)
     assert shapely.from_wkb(wkb[0]).equals(COURTYARD) and shapely.from_wkb(wkb[1]).equals(TWO_PARTS)
     assert wkb[2] is None
     assert list(ids) == ["a", "b", "c"] and coverage[0] == 0.5 and np.isnan(coverage[1:]).all()
     assert list(reason) == [None, None, "no points within 1 m"]
+    assert points[0] == 10 and np.isnan(points[1]) and points[2] == 3
     with sqlite3.connect(out) as db:  # the GeoPackage marks GDAL checks too
         assert db.execute("PRAGMA application_id").fetchone()[0] == 0x47504B47
         assert db.execute("PRAGMA user_version").fetchone()[0] == 10300
@@ -111,3 +118,58 @@ def test_geopackage_without_crs_declares_an_undefined_one(tmp_path: Path) -> Non
     out = write_gpkg_polygons(tmp_path / "b.gpkg", "buildings", [COURTYARD], {"id": ["a"]}, None)
     info = pyogrio.read_info(out)
     assert "Undefined Cartesian SRS" in info["crs"] and info["features"] == 1
+
+
+# ---------------------------------------------------------------- LAS and mesh CRS records
+def _cloud(crs: CRS | None) -> PointCloud:
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform(0, 50, (200, 3)) + [85000.0, 446000.0, 0.0]
+    plane_id = np.where(np.arange(200) % 2 == 0, -1, 3).astype(np.int32)
+    return PointCloud(xyz=xyz, attrs={"plane_id": plane_id, "building_probability": rng.random(200, np.float32),
+                                      "my_dim": np.ones(200, np.uint8)},
+                      crs=crs, extra_dims=["plane_id", "building_probability", "my_dim"])
+
+
+def test_las_carries_wkt1_crs_described_extra_dims_and_lidarmap_as_software(tmp_path: Path) -> None:
+    compound = CRS.from_user_input("EPSG:28992+5709")  # RD New + NAP height, as AHN
+    path = write_las(tmp_path / "p.laz", _cloud(compound))
+    las = laspy.read(path)
+    assert las.header.generating_software == f"lidarmap {lidarmap.__version__}"
+    wkt = las.header.vlrs.get("WktCoordinateSystemVlr")[0].string
+    assert wkt.startswith('COMPD_CS["Amersfoort / RD New + NAP height"')  # WKT1, not WKT2's COMPOUNDCRS
+    assert las.header.global_encoding.wkt
+    assert las.header.parse_crs().to_epsg() == 7415
+    assert read_las(path).crs.equals(compound)
+    structs = {s.name.rstrip(b"\0").decode(): s for s in las.header.vlrs.get("ExtraBytesVlr")[0].extra_bytes_structs}
+    assert structs["plane_id"].description.rstrip(b"\0") == b"flatten plane id, -1: none"
+    assert structs["plane_id"].no_data[0] == -1 and structs["plane_id"].options & 1  # no-data bit set
+    assert structs["building_probability"].description.rstrip(b"\0") == b"P(building) from segmentation"
+    assert not structs["my_dim"].options & 1  # unknown dimensions: no invented no-data value
+    assert np.array_equal(np.asarray(las["plane_id"]), _cloud(None).attrs["plane_id"])
+
+
+def test_every_known_extra_dim_description_fits_the_las_field() -> None:
+    assert all(len(text.encode()) <= 32 for text, _ in EXTRA_DIMS.values())
+
+
+@pytest.mark.parametrize("crs", [CRS.from_epsg(28992), CRS.from_proj4("+proj=tmerc +lon_0=5 +x_0=1000 +ellps=GRS80")])
+def test_meshes_name_their_crs_in_the_ply_header_and_a_prj_sidecar(tmp_path: Path, crs: CRS) -> None:
+    mesh = trimesh.creation.box(extents=(10, 10, 10))
+    mesh.apply_translation([85000.0, 446000.0, 5.0])
+    write_mesh(tmp_path / "m.ply", mesh, crs)
+    write_mesh(tmp_path / "n.obj", mesh, crs)
+    assert read_ply_crs(tmp_path / "m.ply").equals(crs)
+    header = (tmp_path / "m.ply").read_bytes().split(b"end_header")[0].decode()
+    assert ("comment crs EPSG:28992" in header) == (crs.to_epsg() == 28992)
+    for prj in (tmp_path / "m.prj", tmp_path / "n.prj"):
+        # the same system (ESRI WKT renames datums: compare what it does to a point)
+        to_prj = Transformer.from_crs(crs, CRS.from_user_input(prj.read_text()), always_xy=True)
+        assert np.allclose(to_prj.transform(85000.0, 446000.0), (85000.0, 446000.0), atol=1e-6)
+        assert prj.read_text().startswith("PROJCS[")  # WKT1 as .prj files carry it
+    loaded = trimesh.load(tmp_path / "m.ply", process=False)
+    assert np.allclose(loaded.vertices, mesh.vertices)  # the extra comment does not disturb readers
+
+
+def test_mesh_without_crs_has_no_sidecar(tmp_path: Path) -> None:
+    write_mesh(tmp_path / "m.ply", trimesh.creation.box())
+    assert read_ply_crs(tmp_path / "m.ply") is None and sorted(p.name for p in tmp_path.iterdir()) == ["m.ply"]

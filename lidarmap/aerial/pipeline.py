@@ -387,11 +387,12 @@ def write_building(out_dir: Path, output: BuildingOutput, fingerprint: str, mesh
         if len(output.voxels.ijk):
             write_vox(tmp / "voxels.vox", output.voxels)
         main = output.meshes[mesh_kind]
-        write_mesh(tmp / "mesh.ply", main)
-        write_mesh(tmp / "mesh.obj", main)
+        crs = output.cloud.crs
+        write_mesh(tmp / "mesh.ply", main, crs)
+        write_mesh(tmp / "mesh.obj", main, crs)
         for kind, mesh in output.meshes.items():
             if kind != mesh_kind:
-                write_mesh(tmp / f"mesh_{kind}.ply", mesh)
+                write_mesh(tmp / f"mesh_{kind}.ply", mesh, crs)
         write_text_atomic(tmp / "building.json", json.dumps(record, indent=2, default=_json_default))
     return record
 
