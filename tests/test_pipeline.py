@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import shapely
 import trimesh
+from pyproj import CRS
 
 from lidarmap.aerial.densify import DensifyParams
 from lidarmap.aerial.flatten import FlattenParams
@@ -116,6 +117,29 @@ def test_cityjson_validates_with_both_lods(first_run) -> None:
     kinds = {s["type"] for s in building["geometry"][1]["semantics"]["surfaces"]}
     assert kinds == {"GroundSurface", "RoofSurface", "WallSurface"}
     assert building["attributes"]["status"] == "existing" and building["attributes"]["measuredHeight"] > 3
+
+
+def test_run_writes_a_geopackage_of_every_footprint(city: Path, first_run) -> None:
+    pyogrio = pytest.importorskip("pyogrio", reason="pyogrio is in the test extra")
+    out, _ = first_run
+    info = pyogrio.read_info(out / "buildings.gpkg")
+    assert info["crs"] == "EPSG:32632" and info["geometry_type"] == "MultiPolygon"
+    _, _, wkb, columns = pyogrio.raw.read(out / "buildings.gpkg")
+    row = {name: list(values) for name, values in zip(info["fields"], columns)}
+    footprints = read_footprints(city / "footprints.geojson").to_crs(CRS.from_user_input(info["crs"]))
+    assert row["id"] == footprints.ids  # every footprint, in input order, dropped ones too
+    assert all(shapely.from_wkb(w).equals(p) for w, p in zip(wkb, footprints.polygons))
+    summary = json.loads((out / "summary.json").read_text())
+    dropped = summary["dropped_footprints"]
+    assert row["status"] == ["dropped" if i in dropped else "ok" for i in row["id"]]
+    assert row["reason"] == [dropped.get(i) for i in row["id"]]
+    records = {r["id"]: r for r in summary["records"]}
+    for k, building_id in enumerate(row["id"]):
+        if building_id in records:
+            points = read_las(out / "buildings" / building_id / "points.laz")
+            assert row["output_points"][k] == records[building_id]["output_points"] == len(points)
+            assert row["z_max"][k] == pytest.approx(points.xyz[:, 2].max(), abs=1e-3)
+            assert row["z_min"][k] < row["ground_z"][k] + 1 < row["z_max"][k]
 
 
 def test_second_run_resumes_and_a_changed_parameter_recomputes(city: Path, first_run, tmp_path: Path) -> None:

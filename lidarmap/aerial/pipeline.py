@@ -7,7 +7,8 @@
       -> per group of neighbouring buildings, one task (this process, or a dask worker): segmentation of their
          points with the kept points of the buildings around them as context; then per building densify / flatten
          (order configurable) -> voxelize (majority label) -> meshes
-      -> this process writes OUT/buildings/<id>/, OUT/summary.json, OUT/buildings.city.json
+      -> this process writes OUT/buildings/<id>/, OUT/summary.json, OUT/buildings.city.json,
+         OUT/buildings.gpkg (every footprint with its status, for a GIS)
 
 Memory is bounded by the largest group plus its context, a chunk of input and a few tasks in flight, not by the
 input size (docs/cluster.md).
@@ -47,6 +48,7 @@ from pyproj import CRS
 from lidarmap._version import __version__
 from lidarmap.aerial.densify import DensifyParams, densify
 from lidarmap.aerial.flatten import FlattenParams, flatten_points
+from lidarmap.aerial.gislayer import write_buildings_gpkg
 from lidarmap.aerial.mesh import MeshParams, surface_mesh, voxel_mesh
 from lidarmap.aerial.prep import (
     BuildingPoints,
@@ -392,11 +394,12 @@ def write_building(out_dir: Path, output: BuildingOutput, fingerprint: str, mesh
         if len(output.voxels.ijk):
             write_vox(tmp / "voxels.vox", output.voxels)
         main = output.meshes[mesh_kind]
-        write_mesh(tmp / "mesh.ply", main)
-        write_mesh(tmp / "mesh.obj", main)
+        crs = output.cloud.crs
+        write_mesh(tmp / "mesh.ply", main, crs)
+        write_mesh(tmp / "mesh.obj", main, crs)
         for kind, mesh in output.meshes.items():
             if kind != mesh_kind:
-                write_mesh(tmp / f"mesh_{kind}.ply", mesh)
+                write_mesh(tmp / f"mesh_{kind}.ply", mesh, crs)
         write_text_atomic(tmp / "building.json", json.dumps(record, indent=2, default=_json_default))
     return record
 
@@ -612,6 +615,7 @@ def run_pipeline(tiles: Sequence[str | Path], footprints: Footprints, out_dir: s
                            dropped=dict(spooled.dropped), prep=spooled, seconds=time.perf_counter() - started)
         _write_summary(out, result, config, stems)
         _write_cityjson(out, result, stems)
+        write_buildings_gpkg(result, footprints, lambda out_dir, fid: building_dir(out_dir, stems[fid]))
         return result
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -47,7 +47,8 @@ SeedOption = typer.Option(None, "--seed", min=0, help="Random seed (>= 0): the s
 #: ``--crs`` option of every command that reads LAS/LAZ (for files without a CRS record, e.g. AHN).
 CrsOption = typer.Option(None, "--crs", help="CRS of inputs that carry none, e.g. EPSG:28992.")
 #: Required ``--footprints`` option of the commands that split by building.
-FootprintsOption = typer.Option(..., "--footprints", "-f", help="Building footprints (GeoJSON).", dir_okay=False)
+FootprintsOption = typer.Option(..., "--footprints", "-f", dir_okay=False,
+                                help="Building footprints: GeoJSON; GeoPackage, Shapefile or FlatGeobuf with the gis extra.")
 #: ``--id-field`` option of every command that reads footprints.
 IdFieldOption = typer.Option(None, "--id-field", help="Footprint property holding the building id (default 'id').")
 
