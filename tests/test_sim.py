@@ -21,7 +21,7 @@ from lidarmap.sim import SimParams, build_city, load_truth, simulate
 from lidarmap.sim.city import BUILDING_LINE
 from lidarmap.sim.distance import MeshDistance
 from lidarmap.sim.family import DEV_SEEDS, EVAL_SEEDS
-from lidarmap.sim.hard import build_hard_city
+from lidarmap.sim.hard import build_hard_city, campaign_setup
 from lidarmap.sim.mesh import GLASS, KIND, Labels, Soup, quads
 from lidarmap.sim.raycast import Tracer
 
@@ -517,3 +517,17 @@ def test_cli_simulate_rejects_an_unknown_family(tmp_path: Path):
     assert bad.exit_code == 2
     assert "family must be one of standard, hard" in bad.output and "Traceback" not in bad.output
     assert not (tmp_path / "bad" / "als.laz").exists()
+
+
+def test_hard_campaigns_differ_in_lane_speed_height_rate_and_scanner():
+    setups = [campaign_setup(SimParams(seed=seed, family="hard"), i) for seed in DEV_SEEDS for i in (1, 2, 3)]
+    for s in setups:
+        assert 0.6 <= abs(s.lane_offset) <= 3.2 and 4.0 <= s.params.mls_speed <= 10.0
+        assert 1.9 <= s.params.mls_sensor_height <= 3.4 and 60 <= s.params.mls_rate <= 140
+        yaws = np.abs(s.yaws)
+        assert (len(yaws) == 1 and 5 <= yaws[0] <= 20) or (len(yaws) == 2 and s.yaws[0] == -s.yaws[1]
+                                                            and 30 <= yaws[0] <= 45)
+    assert {len(s.yaws) for s in setups} == {1, 2}  # both scanner set-ups occur
+    for name in ("mls_speed", "mls_sensor_height", "mls_rate"):
+        assert len({getattr(s.params, name) for s in setups}) >= len(setups) - 2  # rates are whole Hz
+    assert len({np.sign(s.lane_offset) for s in setups}) == 2
