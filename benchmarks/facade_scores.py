@@ -158,6 +158,10 @@ def _pooled(scores: list[MapScore]) -> MapScore:
                     blank_area=sum(s.blank_area for s in scores))
 
 
+def _rate(s: MapScore) -> str:
+    return f"{s.false_per_unit:.1f}" if s.blank_area > 0 else "–"
+
+
 def _door_f1(s: MapScore) -> float:
     d = s.door
     return 2 * d["tp"] / max(1, 2 * d["tp"] + d["fp"] + d["fn"])
@@ -182,7 +186,7 @@ def markdown(runs: list[SceneRun], evaluation: bool, title: str = "Standard scen
         lines.append(f"| {r.family} | {r.seed} | {' / '.join(f'{n / 1e6:.2f} M' for n in r.points)} | "
                      f"{first.f1:.3f} | {last.f1:.3f} | {_door_f1(first):.3f} / {_door_f1(last):.3f} | "
                      f"{w['tp']}/{w['fp']}/{w['fn']} | {d['tp']}/{d['fp']}/{d['fn']} | "
-                     f"{first.false_per_unit:.1f} / {last.false_per_unit:.1f} ({last.blank_area:.0f}) | "
+                     f"{_rate(first)} / {_rate(last)} ({last.blank_area:.0f}) | "
                      f"{' / '.join(f'{s:.0f}' for s in r.seconds)} |")
     for family in dict.fromkeys(r.family for r in runs):
         mine = [r for r in runs if r.family == family]
@@ -190,7 +194,7 @@ def markdown(runs: list[SceneRun], evaluation: bool, title: str = "Standard scen
         after = [_pooled([r.scores[k] for r in mine]) for k in range(n)]
         lines.append(f"| **{family}, all seeds** | | | **{after[0].f1:.3f}** | **{after[-1].f1:.3f}** | "
                      f"**{_door_f1(after[0]):.3f} / {_door_f1(after[-1]):.3f}** | | | "
-                     f"**{after[0].false_per_unit:.1f} / {after[-1].false_per_unit:.1f}** | |")
+                     f"**{_rate(after[0])} / {_rate(after[-1])}** | |")
     hard = [r for r in runs if r.family == "hard"]
     if hard:
         lines.append("\nHard-family campaigns: " + "; ".join(

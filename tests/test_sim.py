@@ -21,9 +21,10 @@ from lidarmap.sim import SimParams, build_city, load_truth, simulate
 from lidarmap.sim.city import BUILDING_LINE
 from lidarmap.sim.distance import MeshDistance
 from lidarmap.sim.family import DEV_SEEDS, EVAL_SEEDS
-from lidarmap.sim.hard import build_hard_city
+from lidarmap.sim.hard import build_hard_city, campaign_setup
 from lidarmap.sim.mesh import GLASS, KIND, Labels, Soup, quads
 from lidarmap.sim.raycast import Tracer
+from lidarmap.sim.visibility import pulse_spacing
 
 SEED = 7
 PARAMS = SimParams(seed=SEED, buildings=2, campaigns=2)
@@ -556,3 +557,35 @@ def test_cli_simulate_rejects_an_unknown_family(tmp_path: Path):
     assert bad.exit_code == 2
     assert "family must be one of standard, hard" in bad.output and "Traceback" not in bad.output
     assert not (tmp_path / "bad" / "als.laz").exists()
+
+
+def test_hard_campaigns_differ_in_lane_speed_height_rate_and_scanner():
+    setups = [campaign_setup(SimParams(seed=seed, family="hard"), i) for seed in DEV_SEEDS for i in (1, 2, 3)]
+    for s in setups:
+        assert 0.6 <= abs(s.lane_offset) <= 3.2 and 4.0 <= s.params.mls_speed <= 10.0
+        assert 1.9 <= s.params.mls_sensor_height <= 3.4 and 60 <= s.params.mls_rate <= 140
+        yaws = np.abs(s.yaws)
+        assert (len(yaws) == 1 and 5 <= yaws[0] <= 20) or (len(yaws) == 2 and s.yaws[0] == -s.yaws[1]
+                                                            and 30 <= yaws[0] <= 45)
+    assert {len(s.yaws) for s in setups} == {1, 2}  # both scanner set-ups occur
+    for name in ("mls_speed", "mls_sensor_height", "mls_rate"):
+        assert len({getattr(s.params, name) for s in setups}) >= len(setups) - 2  # rates are whole Hz
+    assert len({np.sign(s.lane_offset) for s in setups}) == 2
+
+
+def test_pulse_spacing_on_a_wall_matches_neighbouring_pulses():
+    """The observability rule's in-profile spacing equals the distance between two traced neighbouring pulses."""
+    rng = np.random.default_rng(3)
+    n = np.array([1.0, 0.0, 0.0])  # wall x = 0, seen from x < 0
+    for _ in range(20):
+        yaw, elev, step = rng.uniform(-1.2, 1.2), rng.uniform(-0.6, 0.6), np.radians(0.4)
+        h = np.array([np.sin(yaw), np.cos(yaw), 0.0])  # a vertical profile plane
+        r = np.cos(elev) * np.array([np.cos(yaw), -np.sin(yaw), 0.0]) + np.sin(elev) * np.array([0.0, 0.0, 1.0])
+        origin = np.array([-5.0, 0.0, 0.0])
+        hit = origin + (-origin[0] / r[0]) * r
+        c, s = np.cos(step), np.sin(step)
+        r2 = r * c + np.cross(h, r) * s  # the next pulse of the profile
+        hit2 = origin + (-origin[0] / r2[0]) * r2
+        dist = np.linalg.norm(hit - origin)
+        expected = pulse_spacing(r[None], h[None], n, np.array([dist]), step)[0]
+        assert np.linalg.norm(hit2 - hit) == pytest.approx(expected, rel=0.02)

@@ -31,7 +31,7 @@ class Observability:
 
     ``max_incidence``: largest angle (degrees) between the line of sight and the wall normal;
     ``max_spacing``: largest expected distance (metres) between samples at the cell -- between neighbouring
-    profiles' stripes along the wall, and between pulses within a profile (range x angular step / cos incidence);
+    profiles' stripes along the wall, and between pulses within a profile (:func:`pulse_spacing`);
     ``angular_step``: the scanner's angle between pulses, degrees.
     """
 
@@ -76,7 +76,8 @@ def seen_grid(tracer: Tracer, f: Facade, sensors: np.ndarray, plane_normals: np.
     ok = facing & (dist <= max_range) & (dist > 0.5)
     if observability.limited:
         cos_inc = np.maximum((p[k] - target) @ f.normal / np.maximum(dist, 1e-9), 1e-6)
-        in_profile = dist * np.radians(observability.angular_step) / cos_inc
+        in_profile = pulse_spacing(ray / np.maximum(dist, 1e-9)[:, None], h[k], f.normal, dist,
+                                    np.radians(observability.angular_step))
         ok &= (cos_inc >= np.cos(np.radians(observability.max_incidence)))
         ok &= (np.maximum(in_profile, stripe[k]) <= observability.max_spacing)
     k, j, s, ray, dist = k[ok], j[ok], s[ok], ray[ok], dist[ok]
@@ -85,6 +86,19 @@ def seen_grid(tracer: Tracer, f: Facade, sensors: np.ndarray, plane_normals: np.
     i = np.minimum((s / cell).astype(int), cols - 1)
     grid[j[seen], i[seen]] = True
     return grid
+
+
+def pulse_spacing(r: np.ndarray, h: np.ndarray, n: np.ndarray, dist: np.ndarray, step: float) -> np.ndarray:
+    """Distance on the wall between neighbouring pulses of one profile (metres).
+
+    A pulse turning by dθ in its profile plane (normal h) moves its hit on the wall (normal n) by
+    dist * |r' - r (n.r') / (n.r)| dθ, with r' = h x r the direction the pulse turns to.
+    """
+    turn = np.cross(h, r)
+    turn /= np.maximum(np.linalg.norm(turn, axis=1, keepdims=True), 1e-12)
+    nr = r @ n
+    nr = np.where(np.abs(nr) > 1e-6, nr, 1e-6)
+    return dist * step * np.linalg.norm(turn - r * ((turn @ n) / nr)[:, None], axis=1)
 
 
 def _densified(f: Facade, sensors: np.ndarray, normals: np.ndarray,
