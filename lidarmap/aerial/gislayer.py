@@ -11,14 +11,11 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from lidarmap.core import Footprints
 from lidarmap.io.gpkg import write_gpkg_polygons
 from lidarmap.io.las import read_header
-
-if TYPE_CHECKING:
-    from lidarmap.aerial.pipeline import RunResult
 
 LAYER = "buildings"
 FILE_NAME = "buildings.gpkg"
@@ -39,7 +36,7 @@ def _z_range(points_file: Path) -> tuple[float | None, float | None]:
     return float(header.mins[2]), float(header.maxs[2])
 
 
-def building_rows(result: RunResult, footprints: Footprints, building_dir: Any) -> tuple[list[Any], dict[str, list]]:
+def building_rows(result: Any, footprints: Footprints, building_dir: Any) -> tuple[list[Any], dict[str, list]]:
     """Geometries and columns of the layer: every footprint, in input order."""
     entries = {e.id: e for e in result.prep.entries}
     records = {r["id"]: r for r in result.records}
@@ -67,8 +64,9 @@ def building_rows(result: RunResult, footprints: Footprints, building_dir: Any) 
     return geometries, columns
 
 
-def write_buildings_gpkg(result: RunResult, footprints: Footprints, building_dir: Any) -> Path:
-    """Write ``OUT/buildings.gpkg`` (atomically) for a finished run."""
+def write_buildings_gpkg(result: Any, footprints: Footprints, building_dir: Any) -> Path:
+    """Write ``OUT/buildings.gpkg`` (atomically) for a finished run (``result``: the pipeline's RunResult, not
+    imported here: the pipeline imports this module; ``building_dir(out, id)``: a building's folder)."""
     geometries, columns = building_rows(result, footprints, building_dir)
     crs = result.prep.crs if result.prep.crs is not None else footprints.crs
     return write_gpkg_polygons(result.out_dir / FILE_NAME, LAYER, geometries, columns, crs)

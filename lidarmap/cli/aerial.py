@@ -21,8 +21,11 @@ from lidarmap.cli.common import (
     CrsOption,
     FootprintsOption,
     IdFieldOption,
+    JsonOption,
     SeedOption,
+    echo_json,
     handle_errors,
+    json_mode,
     params_from,
     progress,
     table_console,
@@ -350,14 +353,20 @@ def run_command(
     crs: Optional[str] = CrsOption,
     seed: Optional[int] = SeedOption,
     config: Optional[Path] = ConfigOption,
+    json_output: bool = JsonOption,
 ) -> None:
     """The whole aerial pipeline: prep -> segment -> densify/flatten -> voxelize -> mesh, per building, into
-    OUT/buildings/<id>/ (points.laz, voxels.npz/.vox, mesh.ply/.obj), OUT/summary.json, OUT/buildings.city.json."""
+    OUT/buildings/<id>/ (points.laz, voxels.npz/.vox, mesh.ply/.obj), OUT/summary.json, OUT/buildings.city.json,
+    OUT/buildings.gpkg (every footprint with its status, for a GIS)."""
+    json_mode(json_output)
     pipeline_config = _pipeline_config(config, stages=stages, method=method, model=model, union=union,
                                        voxel_size=voxel_size, mesh=mesh, workers=workers, scheduler=scheduler,
                                        id_field=id_field, seed=seed)
     result = run_with_progress(tiles, footprints, out_dir, pipeline_config, crs)
-    print_run_summary(result)
+    if json_output:
+        echo_json(run_json(result))
+    else:
+        print_run_summary(result)
     if not result.records:
         raise InputError("no building could be reconstructed (see the failures above)", footprints)
 
@@ -410,6 +419,16 @@ def run_with_progress(tiles: list[Path], footprints: Path, out_dir: Path, pipeli
                 bar.update(tasks[step], completed=done, total=total_steps)
 
         return run_pipeline(tiles, fps, out_dir, pipeline_config, crs=crs, report=report)
+
+
+def run_json(result: Any) -> dict[str, Any]:
+    """``run --json``: what the run did and where its outputs are (per building its building.json record)."""
+    out = result.out_dir
+    return {"out_dir": str(out), "processed": result.processed, "skipped": result.skipped, "failed": result.failed,
+            "dropped": result.dropped, "seconds": round(result.seconds, 3),
+            "outputs": {"summary": str(out / "summary.json"), "cityjson": str(out / "buildings.city.json"),
+                        "geopackage": str(out / "buildings.gpkg")},
+            "buildings": [{k: v for k, v in r.items() if k != "fingerprint"} for r in result.records]}
 
 
 def print_run_summary(result: Any) -> None:
