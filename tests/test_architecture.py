@@ -151,6 +151,9 @@ def test_wheel_holds_the_shipped_weights_and_schemas(tmp_path):
                if p.is_file() and p.suffix in (".pt", ".joblib", ".json") and "__pycache__" not in p.parts}
     assert shipped and shipped <= names, sorted(shipped - names)
     assert "lidarmap/py.typed" in names
+    viewer = {"lidarmap/viewer/static/viewer.bundle.js", "lidarmap/viewer/templates/viewer.html",
+              "lidarmap/viewer/THREE_LICENSE", "lidarmap/viewer/src/viewer.js"}  # the page's script, its licence
+    assert viewer <= names, sorted(viewer - names)
     modules = {str(p.relative_to(ROOT)) for p in PACKAGE.rglob("*.py")}
     assert modules <= names, sorted(modules - names)[:5]
 

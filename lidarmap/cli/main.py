@@ -18,7 +18,7 @@ app = typer.Typer(
 )
 
 #: Modules under lidarmap.cli that define ``register(app)``; order is the order in ``--help``.
-COMMAND_MODULES = ["info", "simulate", "prep", "segment", "aerial", "facade_map", "demo"]
+COMMAND_MODULES = ["info", "simulate", "prep", "segment", "aerial", "facade_map", "view", "demo"]
 
 
 def _version(value: bool) -> None:
