@@ -286,3 +286,11 @@ def test_unknown_shapes_are_triangulated_with_holes() -> None:
              for r in [square.exterior, *square.interiors]]
     vertices, faces = triangulate_rings(rings)
     assert abs(trimesh.Trimesh(vertices, faces, process=False).area - square.area) < 1e-9
+
+
+def test_a_run_without_buildings_still_gets_a_glb() -> None:
+    """A run whose buildings all failed: the glb holds the two transform nodes and no building (no crash)."""
+    from lidarmap.export.gltf import GlbBuilding, glb_bytes
+
+    assert glb_building_ids(glb_bytes([])) == []
+    assert glb_building_ids(glb_bytes([GlbBuilding("empty", {}, {})])) == ["empty"]

@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 import trimesh
+from trimesh.exchange.gltf import export_glb
 
 from lidarmap.export.cityjson import (
     ROOF_NZ,
@@ -152,7 +153,8 @@ def glb_bytes(buildings: Iterable[GlbBuilding], crs_wkt: str = "", title: str = 
     asset_extras = {"lidarmap": __version__, "title": title, "origin": [float(x) for x in origin],
                     "crs_wkt": crs_wkt, "up": "CRS z is glTF y; node lidarmap_origin holds the CRS offset",
                     "buildings": len(buildings), **(extras or {})}
-    return scene.export(file_type="glb", include_normals=False, tree_postprocessor=_postprocess(asset_extras))
+    # trimesh.exchange directly: Scene.export refuses a scene without geometry (a run whose buildings all failed)
+    return export_glb(scene, include_normals=False, tree_postprocessor=_postprocess(asset_extras))
 
 
 def write_glb(path: str | Path, buildings: Iterable[GlbBuilding], crs_wkt: str = "",
