@@ -616,6 +616,7 @@ def run_pipeline(tiles: Sequence[str | Path], footprints: Footprints, out_dir: s
         _write_summary(out, result, config, stems)
         _write_cityjson(out, result, stems)
         write_buildings_gpkg(result, footprints, lambda out_dir, fid: building_dir(out_dir, stems[fid]))
+        _write_glb(out, result, stems)
         return result
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -665,6 +666,44 @@ def _write_cityjson(out: Path, result: RunResult, stems: dict[str, str]) -> None
     write_aerial_cityjson(out / "buildings.city.json", buildings(), crs_wkt, translate)
 
 
+def _write_glb(out: Path, result: RunResult, stems: dict[str, str]) -> None:
+    crs_wkt = result.prep.crs.to_wkt() if result.prep.crs is not None else ""
+    write_run_glb(out, result.records, stems, result.prep.entries, crs_wkt)
+
+
+def run_glb_buildings(out_dir: str | Path, records: Sequence[dict[str, Any]], stems: dict[str, str],
+                      entries: Sequence[Any] = ()) -> Iterator[Any]:
+    """A run's buildings for :mod:`lidarmap.export.gltf`, one mesh.ply loaded at a time: their building.json
+    ``records``, ``stems`` their folder names (summary.json's ``folders``); prep ``entries`` (when at hand) add
+    footprint attributes and heights."""
+    from lidarmap.export.cityjson import AerialBuilding
+    from lidarmap.export.gltf import aerial_glb_building
+
+    by_id = {e.id: e for e in entries}
+    for record in records:
+        e = by_id.get(record["id"])
+        mesh = trimesh.load(building_dir(Path(out_dir), stems[record["id"]]) / "mesh.ply", process=False)
+        attributes = {"points": record.get("output_points"), "planes": record.get("planes")}
+        if e is not None:
+            attributes.update({**e.properties, "height_source": e.height_source})
+        yield aerial_glb_building(AerialBuilding(
+            record["id"], None if e is None else e.footprint, math.nan if e is None else e.ground_z,
+            math.nan if e is None else e.height, mesh.vertices, mesh.faces, attributes), record)
+
+
+def write_run_glb(out_dir: str | Path, records: Sequence[dict[str, Any]], stems: dict[str, str],
+                  entries: Sequence[Any] = (), crs_wkt: str = "") -> Path:
+    """``OUT/buildings.glb``: a run's meshes for viewers (glTF 2.0, local origin; :mod:`lidarmap.export.gltf`)."""
+    from lidarmap.export.gltf import write_glb
+
+    return write_glb(Path(out_dir) / "buildings.glb", run_glb_buildings(out_dir, records, stems, entries), crs_wkt,
+                     title=RUN_GLB_TITLE)
+
+
+#: Title of a run's glb (asset extras).
+RUN_GLB_TITLE = "lidarmap aerial reconstruction"
+
+
 def check_stage_names(stages: Iterable[str]) -> tuple[str, ...]:
     """Stage names from a comma list or sequence (CLI ``--stages densify,flatten``); "" / "none" = no stage."""
     if isinstance(stages, str):
@@ -678,6 +717,7 @@ def check_stage_names(stages: Iterable[str]) -> tuple[str, ...]:
 
 __all__ += ["building_dir", "building_fingerprint", "finished", "write_building", "check_stage_names",
             "building_mask", "check_out_dir", "densify_cloud", "flatten_cloud", "building_voxels", "STAGE_FUNCTIONS"]
+__all__ += ["RUN_GLB_TITLE", "run_glb_buildings", "write_run_glb"]
 
 
 def stream_tiles(paths: Sequence[str | Path], footprints: Footprints, params: PrepParams | None = None,

@@ -311,14 +311,23 @@ def history_command(map_path: Path = MapArgument, json_output: bool = JsonOption
 
 @handle_errors
 def export_command(map_path: Path = MapArgument,
-                   out: Path = typer.Option(..., "--output", "-o", help="CityJSON file to write (e.g. city.city.json).",
+                   out: Path = typer.Option(..., "--output", "-o", help="File to write: CityJSON (e.g. city.city.json) or glTF "
+                             "binary for viewers (a name ending .glb).",
                                             dir_okay=False),
                    as_of: Optional[int] = AsOfOption) -> None:
-    """Write the map as CityJSON 2.0: Window/Door surfaces under their WallSurface, uncertainties as attributes."""
+    """Write the map as CityJSON 2.0 (Window/Door surfaces under their WallSurface, uncertainties as attributes) or,
+    for a .glb name, as glTF 2.0 for viewers."""
     from lidarmap.export.cityjson import map_to_cityjson, write_cityjson
     from lidarmap.export.summary import count_map
 
     building_map = load_map(map_path, as_of)
+    if out.suffix.lower() == ".glb":
+        from lidarmap.export.gltf import glb_building_ids, map_to_glb
+        from lidarmap.io.atomic import write_bytes_atomic
+
+        data = write_bytes_atomic(out, map_to_glb(building_map, f"{map_path.stem} ({_state(building_map, as_of)})"))
+        return table_console().print(f"wrote {out} (glTF 2.0, {_state(building_map, as_of)}): "
+                                     f"{len(glb_building_ids(data.read_bytes()))} buildings")
     doc = map_to_cityjson(building_map, title=f"{map_path.stem} ({_state(building_map, as_of)})")
     write_cityjson(out, doc)
     k = count_map(building_map)

@@ -19,7 +19,7 @@ app = typer.Typer(
 )
 
 #: Modules under lidarmap.cli that define ``register(app)``; order is the order in ``--help``.
-COMMAND_MODULES = ["info", "simulate", "prep", "segment", "aerial", "facade_map", "demo", "config_cmd"]
+COMMAND_MODULES = ["info", "simulate", "prep", "segment", "aerial", "facade_map", "view", "demo", "config_cmd"]
 
 
 def _version(value: bool) -> None:
