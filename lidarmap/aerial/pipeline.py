@@ -46,6 +46,7 @@ import trimesh
 from pyproj import CRS
 
 from lidarmap._version import __version__
+from lidarmap.aerial.coverage import CoverageParams, footprint_coverage
 from lidarmap.aerial.densify import DensifyParams, densify
 from lidarmap.aerial.flatten import FlattenParams, flatten_points
 from lidarmap.aerial.gislayer import write_buildings_gpkg
@@ -61,6 +62,7 @@ from lidarmap.aerial.voxel import VoxelParams, voxelize
 from lidarmap.config import check_params
 from lidarmap.core import Footprints, PointCloud, VoxelGrid
 from lidarmap.errors import ConfigError, InputError
+from lidarmap.export.planar import PlanarParams
 from lidarmap.executor import (
     TaskFailure,
     building_seed,
@@ -182,6 +184,8 @@ class PipelineConfig:
     flatten: FlattenParams = FlattenParams()
     voxel: VoxelParams = VoxelParams()
     mesh: MeshParams = MeshParams()
+    coverage: CoverageParams = CoverageParams()
+    lod22: PlanarParams = PlanarParams()
 
     def result_params(self) -> dict[str, Any]:
         """The parameters that shape results (how the work is spread over machines does not)."""
@@ -315,7 +319,14 @@ def process_building(bp: BuildingPoints, probability: np.ndarray, config: Pipeli
     tick = time.perf_counter()
     building = building_mask(cloud)
     rgb = cloud.rgb8()
-    meshes = _meshes(cloud.xyz[building], None if rgb is None else rgb[building], bp, config, cloud.crs)
+    cover = footprint_coverage(cloud.xyz[building, :2], bp.footprint, config.coverage)
+    if cover.outline.is_empty:
+        raise InputError(f"building {bp.id}: its building points cover none of its footprint; nothing to model")
+    stats.update(coverage=round(cover.share, 3), status=cover.status)
+    if cover.partial:  # model only what was measured; the outline goes to the CityJSON's LoD 1 block
+        stats["covered_outline"] = cover.outline.wkt
+    meshes = _meshes(cloud.xyz[building], None if rgb is None else rgb[building], bp, config, cloud.crs,
+                     cover.outline)
     seconds["mesh"] = time.perf_counter() - tick
     seconds["total"] = time.perf_counter() - started
     stats.update(voxels=len(voxels.ijk), voxel_size=voxels.size, seconds={k: round(v, 3) for k, v in seconds.items()},
@@ -336,11 +347,11 @@ def building_voxels(cloud: PointCloud, params: VoxelParams) -> VoxelGrid:
 
 
 def _meshes(xyz: np.ndarray, rgb: np.ndarray | None, bp: BuildingPoints, config: PipelineConfig,
-            crs: CRS | None) -> dict[str, trimesh.Trimesh]:
+            crs: CRS | None, outline: Any) -> dict[str, trimesh.Trimesh]:
     fine = voxelize(xyz, None, rgb, dataclasses.replace(config.voxel, size=config.run.mesh_voxel_size,
                                                          keep_labels=()), crs=crs)
     ground = bp.ground_z if math.isfinite(bp.ground_z) else None
-    return {"surface": surface_mesh(xyz, config.mesh, footprint=bp.footprint, ground_z=ground, rgb=rgb),
+    return {"surface": surface_mesh(xyz, config.mesh, footprint=outline, ground_z=ground, rgb=rgb),
             "voxels": voxel_mesh(fine, config.mesh)}
 
 
@@ -614,7 +625,7 @@ def run_pipeline(tiles: Sequence[str | Path], footprints: Footprints, out_dir: s
                            failed={k: failed[k] for k in sorted(failed, key=order)},
                            dropped=dict(spooled.dropped), prep=spooled, seconds=time.perf_counter() - started)
         _write_summary(out, result, config, stems)
-        _write_cityjson(out, result, stems)
+        _write_cityjson(out, result, config, stems)
         write_buildings_gpkg(result, footprints, lambda out_dir, fid: building_dir(out_dir, stems[fid]))
         _write_glb(out, result, stems)
         return result
@@ -635,14 +646,18 @@ def _write_summary(out: Path, result: RunResult, config: PipelineConfig, stems: 
         "points_read": prep.points_read, "points_kept": prep.points_kept, "buildings": len(result.records),
         "processed": result.processed, "skipped_finished": result.skipped, "failed": result.failed,
         "dropped_footprints": result.dropped, "repaired_footprints": prep.repaired, "seconds": round(result.seconds, 3),
+        "partial": [r["id"] for r in result.records if r.get("status") == "partial"],
         "params": config.result_params(), "records": result.records,
         "folders": {e.id: f"buildings/{stems[e.id]}" for e in prep.entries},
     }
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2, default=_json_default))
 
 
-def _write_cityjson(out: Path, result: RunResult, stems: dict[str, str]) -> None:
-    """``buildings.city.json``, streamed: one building's mesh in memory at a time."""
+def _write_cityjson(out: Path, result: RunResult, config: PipelineConfig, stems: dict[str, str]) -> None:
+    """``buildings.city.json``, streamed: one building's mesh in memory at a time. A partial building's LoD 1 block
+    stands on the covered part of its footprint (``covered_outline``), as its mesh does."""
+    import shapely
+
     from lidarmap.export.cityjson import AerialBuilding, write_aerial_cityjson
 
     by_id = {e.id: e for e in result.prep.entries}
@@ -653,8 +668,10 @@ def _write_cityjson(out: Path, result: RunResult, stems: dict[str, str]) -> None
             mesh = trimesh.load(building_dir(out, stems[e.id]) / "mesh.ply", process=False)
             attributes = {**e.properties, "lidarmap_points": record["output_points"],
                           "lidarmap_building_points": record["building_points"], "lidarmap_voxels": record["voxels"],
-                          "lidarmap_height_source": e.height_source}
-            yield AerialBuilding(id=e.id, footprint=e.footprint, ground_z=e.ground_z, height=e.height,
+                          "lidarmap_height_source": e.height_source,
+                          "lidarmap_coverage": record.get("coverage"), "lidarmap_status": record.get("status")}
+            outline = record.get("covered_outline")
+            yield AerialBuilding(id=e.id, footprint=shapely.from_wkt(outline) if outline else e.footprint, ground_z=e.ground_z, height=e.height,
                                  mesh_vertices=np.asarray(mesh.vertices, dtype=np.float64),
                                  mesh_faces=np.asarray(mesh.faces), attributes=attributes)
 
@@ -663,7 +680,7 @@ def _write_cityjson(out: Path, result: RunResult, stems: dict[str, str]) -> None
     translate = ([math.floor(min(e.bounds[0] for e in entries)), math.floor(min(e.bounds[1] for e in entries)),
                   math.floor(min(grounds, default=0.0))] if entries else [0.0, 0.0, 0.0])
     crs_wkt = result.prep.crs.to_wkt() if result.prep.crs is not None else ""
-    write_aerial_cityjson(out / "buildings.city.json", buildings(), crs_wkt, translate)
+    write_aerial_cityjson(out / "buildings.city.json", buildings(), crs_wkt, translate, planar=config.lod22)
 
 
 def _write_glb(out: Path, result: RunResult, stems: dict[str, str]) -> None:

@@ -374,12 +374,14 @@ def run_command(
 def _pipeline_config(config: Path | None, *, stages: str | None, method: str | None, model: Path | None,
                      union: bool | None, voxel_size: float | None, mesh: str | None, workers: int | None,
                      scheduler: str | None, id_field: str | None, seed: int | None) -> Any:
+    from lidarmap.aerial.coverage import CoverageParams
     from lidarmap.aerial.densify import DensifyParams
     from lidarmap.aerial.flatten import FlattenParams
     from lidarmap.aerial.mesh import MeshParams
     from lidarmap.aerial.pipeline import PipelineConfig, RunParams, check_stage_names
     from lidarmap.aerial.prep import PrepParams
     from lidarmap.aerial.voxel import VoxelParams
+    from lidarmap.export.planar import PlanarParams
     from lidarmap.segment.predict import PredictParams
 
     # params_from refuses tables no command knows (lidarmap.config.KNOWN_TABLES)
@@ -393,6 +395,8 @@ def _pipeline_config(config: Path | None, *, stages: str | None, method: str | N
         flatten=params_from(FlattenParams, config),
         voxel=params_from(VoxelParams, config, size=voxel_size),
         mesh=params_from(MeshParams, config),
+        coverage=params_from(CoverageParams, config),
+        lod22=params_from(PlanarParams, config),
     )
 
 
@@ -436,11 +440,14 @@ def print_run_summary(result: Any) -> None:
     rows = []
     for r in result.records:
         state = "skipped (done)" if r["id"] in result.skipped else "done"
+        coverage = r.get("coverage")
+        covered = "" if coverage is None else f"{coverage:.2f}" + (" partial" if r.get("status") == "partial" else "")
         rows.append([r["id"], r["points"], r["building_points"], r.get("new_points", 0), r.get("planes", 0),
                      r["voxels"], r["mesh_faces"][r["mesh"]], "yes" if r["watertight"][r["mesh"]] else "no",
-                     r["seconds"]["total"], state])
+                     covered, r["seconds"]["total"], state])
     _table(f"lidarmap run -> {result.out_dir}", ["building", "points", "building pts", "new pts", "planes",
-                                                  "voxels", "mesh triangles", "watertight", "s", ""], rows)
+                                                  "voxels", "mesh triangles", "watertight", "coverage", "s", ""],
+           rows)
     out = table_console()
     for bid, reason in result.failed.items():
         out.print(f"[yellow]failed[/] {bid}: {escape(reason)}", highlight=False)

@@ -31,6 +31,8 @@ PARAM_CLASSES = (
     "lidarmap.aerial.flatten:FlattenParams",
     "lidarmap.aerial.voxel:VoxelParams",
     "lidarmap.aerial.mesh:MeshParams",
+    "lidarmap.aerial.coverage:CoverageParams",
+    "lidarmap.export.planar:PlanarParams",
     "lidarmap.facade.params:FacadeParams",
     "lidarmap.map.refine:RefineParams",
     "lidarmap.map.update:UpdateParams",
