@@ -53,9 +53,9 @@ class FacadeFrame:
         """CRS points (N, 3) to façade coordinates (s, t, d)."""
         return (np.asarray(xyz, dtype=np.float64) - self.origin) @ self.basis().T
 
-    def to_crs(self, std: np.ndarray) -> np.ndarray:
+    def to_crs(self, sdt: np.ndarray) -> np.ndarray:
         """Façade coordinates (N, 3) (s, t, d) back to CRS points."""
-        return np.asarray(std, dtype=np.float64) @ self.basis() + self.origin
+        return np.asarray(sdt, dtype=np.float64) @ self.basis() + self.origin
 
     def polygon_to_crs(self, polygon: Polygon, depth: float = 0.0) -> np.ndarray:
         """Exterior ring of a façade-coordinate polygon as CRS 3D points (closing vertex dropped)."""
