@@ -19,6 +19,7 @@ See docs/facade.md for the parameters and their defaults.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import time
 
@@ -28,6 +29,15 @@ from shapely.geometry import box
 
 from lidarmap.executor import derive_seed
 from lidarmap.facade.campaign import CampaignData
+from lidarmap.facade.evidence import (
+    CellEvidence,
+    cell_evidence,
+    local_wall_depth,
+    missed_pulse_crossings,
+    opaque_cells,
+    opening_cells,
+    vote_weights,
+)
 from lidarmap.facade.layers import (
     DepthGrid,
     assign_layers,
@@ -91,6 +101,9 @@ __all__ = ["FacadeParams", "CampaignData", "building_facades", "extract_facade",
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Helpers
+
+log = logging.getLogger(__name__)
+_WARNED_SOURCES: set[str] = set()
 
 #: Spawn key of the observation's own random stream (occlusion spacing, outline samples) under the façade's seed.
 _OBSERVE_STREAM = 7
@@ -281,15 +294,6 @@ class _Surface:
         return self.layers[self.main_idx]
 
 
-@dataclasses.dataclass
-class _Visibility:
-    """What the scanner could see of each cell (step "occlusion"): the value grid and its parts."""
-
-    values: np.ndarray  # HOLE / OCCLUDED / OBJECT per cell
-    ground_t: np.ndarray  # ground height (façade t) per column
-    below: np.ndarray  # cells below the ground line
-
-
 def _campaign_members(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, float, float, float],
                       params: FacadeParams) -> np.ndarray:
     """The campaign's building points within [-layer_back, layer_front] of the plane over the extent."""
@@ -354,10 +358,10 @@ def _surface_grid(surf: _Surface, params: FacadeParams) -> bool:
     return True
 
 
-def _around_points(camp: CampaignData, frame: FacadeFrame, surf: _Surface,
-                   params: FacadeParams) -> tuple[np.ndarray, np.ndarray]:
+def _around_ids(camp: CampaignData, frame: FacadeFrame, surf: _Surface,
+                params: FacadeParams) -> tuple[np.ndarray, np.ndarray]:
     """Every non-ground point (any class) in the slab between the farthest sensor and ``through_max_depth`` behind
-    the plane, and its sensor, in façade coordinates: occluders in front, seen-through points behind."""
+    the plane (occluders in front, seen-through points behind), and the ground points under that slab."""
     s0, s1 = surf.extent[0], surf.extent[1]
     front = surf.sensors @ frame.normal - frame.normal @ frame.origin
     front_dist = float(min(np.nanquantile(front, 0.99) + 1.0,
@@ -367,26 +371,79 @@ def _around_points(camp: CampaignData, frame: FacadeFrame, surf: _Surface,
     x0, y0 = corners[:, :2].min(axis=0) - 1.0
     x1, y1 = corners[:, :2].max(axis=0) + 1.0
     around = camp.nonground_ids[camp.nonground_index.query_box(x0, y0, x1, y1)]
-    return frame.to_facade(camp.xyz[around]), frame.to_facade(camp.sensors[around])
+    ground = np.zeros(0, dtype=np.int64)
+    if camp.ground_index is not None:
+        ground = camp.ground_ids[camp.ground_index.query_box(x0, y0, x1, y1)]
+    return around, ground
+
+
+@dataclasses.dataclass
+class _Visibility:
+    """What the scanner could see of each cell (step "occlusion"): the value grid and its parts."""
+
+    values: np.ndarray  # HOLE / OCCLUDED / OBJECT per cell
+    ground_t: np.ndarray  # ground height (façade t) per column
+    below: np.ndarray  # cells below the ground line
+    unsampled: np.ndarray  # cells no pulse reached although nothing hid them: not observed, not an occlusion
+    weights: np.ndarray  # the campaign's vote weight per cell (1..4)
+    opaque: np.ndarray | None = None  # cells closed by a surface just behind the wall (door leaves, curtains)
+
+
+def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens: np.ndarray, around: np.ndarray,
+                  ground_ids: np.ndarray, frame: FacadeFrame, params: FacadeParams) -> CellEvidence:
+    """Pulses per cell on the wall, through it and missed (:mod:`lidarmap.facade.evidence`)."""
+    shape, cell = surf.shape, surf.cell
+    s0, t0 = surf.extent[0], surf.extent[2]
+    d = surf.sdt[:, 2]
+    inside = (d >= -params.layers.layer_back) & (d <= params.layers.layer_front)  # any layer or none: a leaf too
+    rel = d - local_wall_depth(surf.sdt, s0, params)
+    pass_depth = params.evidence.pass_depth
+    sens_sdt = frame.to_facade(surf.sensors)
+    on_wall = inside & (np.abs(rel) <= pass_depth)
+    recessed = inside & (rel < -pass_depth)
+    deep = a_sdt[:, 2] < -params.layers.layer_back
+    behind_sdt = np.concatenate([surf.sdt[recessed], a_sdt[deep]])
+    behind_sens = np.concatenate([sens_sdt[recessed], a_sens[deep]])
+    is_deep = np.r_[np.zeros(int(recessed.sum()), bool), np.ones(int(deep.sum()), bool)]
+    missed: tuple | None = None
+    if camp.gps is not None:
+        ids = np.concatenate([around, ground_ids])
+        seq_sdt = np.concatenate([a_sdt, frame.to_facade(camp.xyz[ground_ids])])
+        seq_sens = np.concatenate([a_sens, np.full((len(ground_ids), 3), np.nan)])
+        max_range = camp.limits[0] * params.occlusion.reach_margin
+        missed = missed_pulse_crossings(seq_sdt, seq_sens, camp.gps[ids], max_range, params)
+    ev = cell_evidence(surf.sdt[on_wall], sens_sdt[on_wall], behind_sdt, behind_sens, is_deep,
+                       missed if missed is not None else (np.zeros(0),) * 3, shape, s0, t0, cell)
+    ev.pulse_order = missed is not None
+    return ev
 
 
 def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: FacadeParams,
                 rng: np.random.Generator) -> _Visibility:
-    """Step "occlusion": shadows of the points in front, cells seen through, the scanner's reach and the ground line
-    give the value grid (hole / occluded / object)."""
+    """Step "occlusion": shadows of the points in front, cells the laser went through (ray evidence, or the
+    paper's rule: every reachable unobserved cell), the scanner's reach and the ground line give the value grid
+    (hole / occluded / object)."""
     shape, cell = surf.shape, surf.cell
     s0, s1, t0, _ = surf.extent
-    a_sdt, a_sens = _around_points(camp, frame, surf, params)
+    around, ground_ids = _around_ids(camp, frame, surf, params)
+    a_sdt, a_sens = frame.to_facade(camp.xyz[around]), frame.to_facade(camp.sensors[around])
     fg = (a_sdt[:, 2] > params.occlusion.occluder_min_depth) & (a_sdt[:, 2] < a_sens[:, 2])
     fg_spacing = sample_spacing(a_sdt[fg], rng=rng) if fg.any() else 0.0
     occluded = occlusion_mask(a_sdt[fg], a_sens[fg], shape, s0, t0, cell, params, spacing=fg_spacing)
     behind = a_sdt[:, 2] < -params.layers.layer_back
     through = through_cells(a_sdt[behind], a_sens[behind], shape, s0, t0, cell) > 0
     reachable = reach_mask(frame.to_facade(camp.track), shape, s0, t0, cell, camp.limits, params)
-    observed = surf.observed & ~(through & ~surf.observed_raw)
+    ev = _ray_evidence(camp, surf, a_sdt, a_sens, around, ground_ids, frame, params)
+    ray = params.evidence.ray_evidence and ev.pulse_order  # without per-pulse times: the paper's rule
+    if params.evidence.ray_evidence and not ev.pulse_order and camp.source not in _WARNED_SOURCES:
+        _WARNED_SOURCES.add(camp.source)
+        log.warning("%s: GPS times do not order the pulses of a scan line (one time per line?); openings are read "
+                    "from unobserved cells (the paper's rule)", camp.source or "campaign")
+    passed = opening_cells(ev, params) if ray else through
+    observed = surf.observed & ~(passed if ray else (through & ~surf.observed_raw))
     if params.openings.occlusion_grow_cells > 0:
         grow = square(params.openings.occlusion_grow_cells)
-        occluded = occluded | (ndimage.binary_dilation(occluded, structure=grow) & ~observed & ~through)
+        occluded = occluded | (ndimage.binary_dilation(occluded, structure=grow) & ~observed & ~passed)
     ground_t = _ground_line(camp, frame, s0, s1, t0, shape[1], cell, params)
     # the ground is never above the lowest wall measured in a column
     raw = surf.observed_raw
@@ -394,8 +451,15 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
     ground_t = np.minimum(ground_t, lowest)
     t_centres = t0 + (np.arange(shape[0]) + 0.5) * cell
     below = (t_centres[:, None] < ground_t[None, :] - 0.5 * cell) & ~raw
-    values = value_grid(observed, occluded | ~reachable | below, through)
-    return _Visibility(values=values, ground_t=ground_t, below=below)
+    hidden = occluded | ~reachable | below
+    unsampled = np.zeros(shape, dtype=bool)
+    if ray:
+        unsampled = ~observed & ~passed & ~hidden
+        hidden = hidden | unsampled
+    values = value_grid(observed, hidden, passed)
+    weights = vote_weights(ev, occluded, params)
+    return _Visibility(values=values, ground_t=ground_t, below=below, unsampled=unsampled, weights=weights,
+                       opaque=opaque_cells(ev, params) if ray else None)
 
 
 class _Elements:
@@ -422,7 +486,7 @@ def _recessed_kind(cmask: np.ndarray, depths: np.ndarray, vis: _Visibility, surf
     r_lo, r_hi, c_lo, c_hi = rr.min(), rr.max() + 1, cc.min(), cc.max() + 1
     width, height = (c_hi - c_lo) * cell, (r_hi - r_lo) * cell
     fill = cmask.sum() / float((r_hi - r_lo) * (c_hi - c_lo))
-    on_ground = t0 + r_lo * cell <= float(np.mean(vis.ground_t[c_lo:c_hi])) + op.door_bottom_tol
+    on_ground = t0 + r_lo * cell <= float(np.mean(vis.ground_t[c_lo:c_hi])) + op.door_leaf_tol  # a leaf
     spread = 1.4826 * float(np.median(np.abs(depths - np.median(depths))))  # robust σ of the object
     opening = fill >= op.Ta and min(width, height) >= op.min_opening_size \
         and width * height <= op.max_opening_area and spread <= params.layers.surface_max_sigma
@@ -451,6 +515,8 @@ def _layer_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: 
         offset = layer.mu - surf.main.mu
         if li == surf.main_idx or abs(offset) <= params.layers.structure_min_offset:
             continue
+        if offset < 0 and params.evidence.ray_evidence:
+            continue  # behind the wall: the ray evidence reads it (openings closed by glass, curtains, leaves)
         comp, n = grow_regions(surf.dominant == li, params.objects.close_cells, min_cells, min_width)
         for k in range(1, n + 1):
             cmask = comp == k
@@ -477,7 +543,7 @@ def _layer_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: 
                 poly = outline_polygon(st, cell, params.objects.concave_ratio)
             if poly is not None:
                 found.add(kind, poly, layer.layer_id, unc, int(sel.sum()))
-    found.window_votes[found.door_cells] = 1
+    found.window_votes[found.door_cells] = vis.weights[found.door_cells]
     vis.values[found.door_cells] = OBJECT  # a door leaf is not a hole of the wall for the window search
 
 
@@ -487,7 +553,8 @@ def _hole_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: F
     cell = surf.cell
     s0, s1, t0, t1 = surf.extent
     wall_st = surf.sdt[surf.labels == surf.main_idx, :2]
-    openings = detect_openings(vis.values, cell, params, ground_t=vis.ground_t, t0=t0, s0=s0, wall_st=wall_st)
+    openings = detect_openings(vis.values, cell, params, ground_t=vis.ground_t, t0=t0, s0=s0, wall_st=wall_st,
+                               opaque=vis.opaque)
     if params.openings.complete_by_repetition:
         complete_by_repetition(openings, vis.values, s0, t0, cell, params)
     for op in openings:
@@ -495,14 +562,14 @@ def _hole_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: F
             b_s0, b_s1, b_t0, b_t1 = op.bounds
             found.add(op.kind, box(max(b_s0, s0), max(b_t0, t0), min(b_s1, s1), min(b_t1, t1)), None,
                       op.uncertainty)
-            found.window_votes[op.mask] = 1
+            found.window_votes[op.mask] = vis.weights[op.mask]
             continue
         if op.window_evidence:
-            found.window_votes[op.mask] = 1
+            found.window_votes[op.mask] = vis.weights[op.mask]
         for poly in mask_to_polygons(op.mask, s0, t0, cell):
             found.add(ElementKind.UNKNOWN, poly, None, math.inf)
     min_unknown = max(1, int(math.ceil(params.openings.min_unknown_area / (cell * cell))))
-    occ_comp, n_occ = grow_regions((vis.values == OCCLUDED) & ~vis.below, 0, min_unknown)
+    occ_comp, n_occ = grow_regions((vis.values == OCCLUDED) & ~vis.below & ~vis.unsampled, 0, min_unknown)
     for k in range(1, n_occ + 1):
         for poly in mask_to_polygons(occ_comp == k, s0, t0, cell):
             found.add(ElementKind.UNKNOWN, poly, None, math.inf)
@@ -513,7 +580,7 @@ def _observation(frame: FacadeFrame, surf: _Surface, vis: _Visibility, found: _E
     """Step "evidence": the evidence grids and the façade record of the observation."""
     s0, s1, t0, t1 = surf.extent
     seen = (vis.values != OCCLUDED).astype(np.int32)
-    object_votes = ((vis.values == OBJECT) & ~found.door_cells).astype(np.int32)
+    object_votes = np.where((vis.values == OBJECT) & ~found.door_cells, vis.weights, 0).astype(np.int32)
     evidence = FacadeEvidence(cell=surf.cell, s0=s0, t0=t0, window_votes=found.window_votes,
                               object_votes=object_votes, seen=seen)
     edge = match_footprint_edge(frame, (s0, s1), polygon, params)[0] if polygon is not None else None
