@@ -31,6 +31,9 @@ def simulate_command(
     buildings: Optional[int] = typer.Option(None, "--buildings", help="Existing buildings (default 8); one "
                                             "construction site is always added."),
     campaigns: Optional[int] = typer.Option(None, "--campaigns", help="Mobile campaigns (default 3)."),
+    family: Optional[str] = typer.Option(None, "--family", help="Scene family: standard (default) or hard "
+                                         "(randomised façades, glass, grazing side walls, varied campaigns; "
+                                         "docs/simulator.md)."),
     config: Optional[Path] = ConfigOption,
 ) -> None:
     """Simulate a city (aerial als.laz, mobile mls_<i>.laz + trajectory_<i>.csv, footprints.geojson, truth/)."""
@@ -39,7 +42,7 @@ def simulate_command(
         simulate,
     )
 
-    params = params_from(SimParams, config, seed=seed, buildings=buildings, campaigns=campaigns)
+    params = params_from(SimParams, config, seed=seed, buildings=buildings, campaigns=campaigns, family=family)
     with progress() as bar:
         tasks: dict[str, int] = {}
 
@@ -49,7 +52,7 @@ def simulate_command(
             bar.update(tasks[task], completed=done, total=total)
 
         result = simulate(out_dir, params, report)
-    table = Table(title=f"simulated seed {params.seed} into {result.out_dir}", title_justify="left")
+    table = Table(title=f"simulated {params.family} seed {params.seed} into {result.out_dir}", title_justify="left")
     table.add_column("file")
     table.add_column("points", justify="right")
     table.add_row(result.als.name, f"{result.als_points:,}")

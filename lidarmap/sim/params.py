@@ -44,6 +44,18 @@ class SimParams:
             the vertical shift is at most half of it, the rotation about z at most 0.01°. 0 disables it.
     Truth
         visibility_cell (0.1): cell size (metres) of the per-façade visibility grids.
+    Family (docs/simulator.md, "Hard family")
+        family ("standard"): "standard" (the scene above) or "hard" (randomised façades, grazing side walls, glass,
+            vans, per-campaign lane/speed/height/rate/scanner, GPS drift; lidarmap/sim/hard.py). The knobs below
+            are read by the hard family only.
+        glass_return_min (0.15), glass_return_max (0.6): bounds of the share of pulses a glass pane returns (each
+            pane draws its own share in these bounds).
+        gps_drift_horizontal (0.12), gps_drift_vertical (0.05): largest smooth GPS drift (metres) of a campaign's
+            trajectory and points.
+        visibility_max_incidence (80.0): a cell counts as seen (truth visibility) only where the line of sight
+            meets the wall at most this far from its normal, degrees (grazing cells are unobservable).
+        visibility_max_spacing (0.3): ... and only where the expected distance between samples there (between
+            neighbouring profiles' stripes, and between pulses of one profile) is at most this, metres.
     """
 
     section = "simulate"
@@ -70,10 +82,17 @@ class SimParams:
         "mls_max_range": ">= 0",
         "mls_range_noise": ">= 0",
         "mls_min_separation": ">= 0",
-        "mls_tilt": ">= 0",
+        "mls_tilt": "[-60, 60]",
         "mls_label_error": ">= 0",
         "mls_misregistration": ">= 0",
         "visibility_cell": ">= 0",
+        "family": "in standard, hard",
+        "glass_return_min": "[0, 1]",
+        "glass_return_max": "[0, 1]",
+        "gps_drift_horizontal": "[0, 1]",
+        "gps_drift_vertical": "[0, 1]",
+        "visibility_max_incidence": "(0, 90]",
+        "visibility_max_spacing": "> 0",
     }
 
     seed: int = 0
@@ -102,6 +121,13 @@ class SimParams:
     mls_label_error: float = 0.01
     mls_misregistration: float = 0.04
     visibility_cell: float = 0.1
+    family: str = "standard"
+    glass_return_min: float = 0.15
+    glass_return_max: float = 0.6
+    gps_drift_horizontal: float = 0.12
+    gps_drift_vertical: float = 0.05
+    visibility_max_incidence: float = 80.0
+    visibility_max_spacing: float = 0.3
 
     def __post_init__(self) -> None:
         check_params(self)
@@ -129,6 +155,7 @@ class SimParams:
             (0 <= self.mls_label_error < 0.5, "mls_label_error must be in [0, 0.5)"),
             (0 <= self.mls_misregistration <= 1, "mls_misregistration must be in [0, 1] m"),
             (0.02 <= self.visibility_cell <= 1, "visibility_cell must be in [0.02, 1] m"),
+            (self.glass_return_min <= self.glass_return_max, "glass_return_min must be <= glass_return_max"),
         ]
         for ok, message in checks:
             if not ok:

@@ -12,7 +12,7 @@ import numpy as np
 import trimesh
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-from lidarmap.sim.mesh import ABSORBER, LEAF, SceneMesh
+from lidarmap.sim.mesh import ABSORBER, GLASS, LEAF, SceneMesh
 
 STEP = 1e-3  # restart distance past a leaf so Embree does not report the same leaf again
 
@@ -36,10 +36,16 @@ class Returns:
 
 
 class Tracer:
-    """Casts rays against one :class:`SceneMesh` (local frame)."""
+    """Casts rays against one :class:`SceneMesh` (local frame).
 
-    def __init__(self, scene: SceneMesh):
+    ``seed`` seeds the per-pulse draws that decide whether glass returns a pulse: calls to :meth:`trace` in the
+    same order give the same draws, so a campaign is deterministic.
+    """
+
+    def __init__(self, scene: SceneMesh, seed: int | list[int] = 0):
         self.scene = scene
+        self._glass_draws = np.random.default_rng(seed)
+        self._has_glass = bool((scene.behaviour == GLASS).any())
         tris = scene.triangles
         n = len(tris)
         mesh = trimesh.Trimesh(vertices=tris.reshape(-1, 3), faces=np.arange(3 * n).reshape(n, 3), process=False,
@@ -75,7 +81,9 @@ class Tracer:
         """Follow each pulse through leaves until an opaque surface, an absorber, the range limit or 5 returns.
 
         A leaf reflects part of the pulse (a return) and lets the rest through; surfaces closer than
-        ``min_separation`` to the previous return merge with it (no new return), as in a real receiver.
+        ``min_separation`` to the previous return merge with it (no new return), as in a real receiver. Glass
+        returns a pulse (which ends there) when the pulse's draw falls under the pane's ``return_fraction``;
+        otherwise the pulse passes without a return (one draw per pulse, whatever it meets).
         """
         dirs = np.asarray(dirs, dtype=np.float64)
         dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
@@ -86,6 +94,7 @@ class Tracer:
         stop_tri = np.full(n, -1, np.int64)
         stop_range = np.full(n, np.inf)
         active = np.arange(n)
+        draw = self._glass_draws.random(n) if self._has_glass else np.zeros(n)
         rays, tris, ranges = [], [], []
         for _ in range(max_steps):
             if len(active) == 0:
@@ -94,18 +103,19 @@ class Tracer:
             ok = (tri >= 0) & (t <= max_range)
             active, tri, t = active[ok], tri[ok], t[ok]
             behaviour = self.scene.behaviour[tri]
+            passes = (behaviour == GLASS) & (draw[active] >= self.scene.return_fraction[tri])
             absorbed = behaviour == ABSORBER
             separate = (t - last[active]) >= min_separation
-            record = ~absorbed & separate
+            record = ~absorbed & ~passes & separate
             rays.append(active[record])
             tris.append(tri[record])
             ranges.append(t[record])
             last[active[record]] = t[record]
             count[active[record]] += 1
-            stops = (behaviour != LEAF)
+            stops = (behaviour != LEAF) & ~passes
             stop_tri[active[stops]] = tri[stops]
             stop_range[active[stops]] = t[stops]
-            go_on = (behaviour == LEAF) & (count[active] < max_returns)
+            go_on = ((behaviour == LEAF) & (count[active] < max_returns)) | passes
             start[active[go_on]] = t[go_on] + STEP
             active = active[go_on]
         ray = np.concatenate(rays) if rays else np.zeros(0, np.int64)
