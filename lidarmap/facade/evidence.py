@@ -72,19 +72,74 @@ def local_wall_depth(sdt: np.ndarray, s0: float, params: FacadeParams) -> np.nda
     return np.where(uniq[pos] == block, median[pos], 0.0)
 
 
+def _fill_sensors(sensors: np.ndarray, gps: np.ndarray) -> np.ndarray:
+    """Sensor positions where unknown (NaN: ground points) interpolated in time from the known ones."""
+    known = np.isfinite(sensors).all(axis=1)
+    if known.all() or known.sum() < 2:
+        return sensors
+    order = np.argsort(gps[known], kind="stable")
+    kt, ks = gps[known][order], sensors[known][order]
+    out = sensors.copy()
+    for k in range(3):
+        out[~known, k] = np.interp(gps[~known], kt, ks[:, k])
+    return out
+
+
+def scanner_heads(sdt: np.ndarray, sensors_sdt: np.ndarray, gps: np.ndarray) -> np.ndarray:
+    """Which scanner head fired each return (0 or 1): two crossed profilers fire at the same times and one file
+    interleaves them, so their scan lines are told apart by the yaw of the profile plane each pulse lies in
+    (atan(forward / sideways) of its direction, forward = the sensor's direction of travel). One head (0 for all)
+    unless at least 20 % of the pulses lie in planes yawed more than 10° either way."""
+    heads = np.zeros(len(gps), dtype=np.int64)
+    order = np.argsort(gps, kind="stable")
+    t, c = gps[order], sensors_sdt[order]
+    if len(t) < 20 or t[-1] - t[0] <= 0:
+        return heads
+    span = max(0.05, 1e-3 * (t[-1] - t[0]))  # travel direction over +-span seconds
+    lo = np.searchsorted(t, t - span)
+    hi = np.clip(np.searchsorted(t, t + span, side="right") - 1, 0, len(t) - 1)
+    travel = c[hi] - c[lo]
+    travel[:, 1] = 0.0  # façade coordinates: t is the vertical
+    travel /= np.maximum(np.linalg.norm(travel, axis=1, keepdims=True), 1e-9)
+    d = sdt[order] - c
+    forward = np.sum(d * travel, axis=1)
+    sideways = d[:, 0] * travel[:, 2] - d[:, 2] * travel[:, 0]
+    yaw = np.degrees(np.arctan(forward / np.where(np.abs(sideways) > 1e-9, sideways, 1e-9)))
+    plus, minus = float(np.mean(yaw > 10.0)), float(np.mean(yaw < -10.0))
+    if plus >= 0.2 and minus >= 0.2:
+        heads[order] = (yaw > 0).astype(np.int64)
+    return heads
+
+
 def missed_pulse_crossings(sdt: np.ndarray, sensors_sdt: np.ndarray, gps: np.ndarray, max_range: float,
                            params: FacadeParams) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Where the pulses that returned nothing crossed the plane d = 0: (s, t, |cos incidence|); ``None`` when the
     times do not order the pulses (most returns share their time with the next one: a time per scan line only).
 
     ``sdt`` are returns around the façade in façade coordinates (everything a pulse could hit between the sensor
-    and far behind the wall, ground included), ``sensors_sdt`` their pulses' origins (NaN where unknown: the
-    neighbour's is used) and ``gps`` their times. Consecutive returns in time are a gap of ``k`` pulse periods
-    (the period: the 20th percentile of the positive time steps); a gap of 2 .. ``max_missed_pulses + 1`` periods
-    whose angle per period matches the line's angular step (±60 %, else the two returns belong to different scan
-    lines) holds ``k - 1`` missed pulses, their directions interpolated between the two returns'. Crossings beyond
-    ``max_range`` or at incidences above ``missed_max_incidence_deg`` are dropped: no return is expected there.
+    and far behind the wall, ground included), ``sensors_sdt`` their pulses' origins (NaN where unknown:
+    interpolated in time) and ``gps`` their times. The returns of each scanner head (:func:`scanner_heads`) are
+    ordered by time; consecutive returns ``k`` pulse periods apart (the period: the 20th percentile of the
+    positive time steps) leave ``k - 1`` missed pulses when ``k`` is 2 .. ``max_missed_pulses + 1`` and the angle
+    per period matches the line's angular step (0.4-1.6 x, else the two returns belong to different scan lines);
+    their directions are interpolated between the two returns'. Crossings beyond ``max_range`` or at incidences
+    above ``missed_max_incidence_deg`` are dropped: no return is expected there.
     """
+    empty = (np.zeros(0), np.zeros(0), np.zeros(0))
+    if len(gps) < 3:
+        return empty
+    sensors_sdt = _fill_sensors(np.asarray(sensors_sdt, dtype=np.float64), gps)
+    heads = scanner_heads(sdt, sensors_sdt, gps)
+    parts = [_missed_in_line(sdt[heads == h], sensors_sdt[heads == h], gps[heads == h], max_range, params)
+             for h in np.unique(heads)]
+    if any(p is None for p in parts):
+        return None
+    return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))  # type: ignore[return-value]
+
+
+def _missed_in_line(sdt: np.ndarray, sensors_sdt: np.ndarray, gps: np.ndarray, max_range: float,
+                    params: FacadeParams) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """:func:`missed_pulse_crossings` for the returns of one scanner head."""
     ev = params.evidence
     empty = (np.zeros(0), np.zeros(0), np.zeros(0))
     if len(gps) < 3:
@@ -93,13 +148,13 @@ def missed_pulse_crossings(sdt: np.ndarray, sensors_sdt: np.ndarray, gps: np.nda
     p, c, g = sdt[order], sensors_sdt[order], gps[order]
     dt = np.diff(g)
     positive = dt[dt > 1e-9]
-    if len(positive) < 10:
-        return empty
     if len(positive) < 0.5 * len(dt):
         return None  # most returns share their time with the next: no per-pulse times, no scan-line order
+    if len(positive) < 10:
+        return empty
     period = float(np.quantile(positive, 0.2))
     steps = np.rint(dt / period).astype(np.int64)
-    sens = np.where(np.isnan(c[:-1, :1]), c[1:], c[:-1])  # the gap's origin: either return's sensor
+    sens = c[:-1]
     ok = np.isfinite(sens).all(axis=1)
     ua = p[:-1] - sens
     ub = p[1:] - sens
