@@ -267,8 +267,7 @@ def building_rng(seed: int, building_id: str) -> tuple[int, np.random.Generator]
     """A building's seed and generator: the same whatever else is in the run and on every machine (from
     (seed, building id), from :func:`lidarmap.executor.building_seed_sequence`)."""
     sequence = building_seed_sequence(seed, building_id)
-    # sub-steps seed scikit-learn's GMM with seed * 31 + k, which must stay below 2**32
-    return int(sequence.generate_state(1)[0] >> 5), np.random.default_rng(sequence)
+    return int(sequence.generate_state(1)[0]), np.random.default_rng(sequence)
 
 
 def _grow(box: tuple[float, float, float, float], by: float) -> tuple[float, float, float, float]:
