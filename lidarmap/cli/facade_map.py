@@ -3,6 +3,7 @@
 ::
 
     lidarmap map update MAP --points MLS.laz --trajectory T.csv --footprints F.geojson   # a mobile campaign
+    lidarmap map update MAP --points MLS.ply [--columns ...] [--crs EPSG:N] [-f F]      # PLY/XYZ (docs/mls.md)
     lidarmap map update MAP --aerial ALS.laz [--footprints F.geojson]                    # roof planes
     lidarmap map show MAP [--building ID] [--as-of N]
     lidarmap map history MAP
@@ -84,10 +85,11 @@ _UPDATE_STEPS = ("fingerprint", "reading points", "reading footprints", "refinin
 @handle_errors
 def update_command(
     map_path: Path = MapArgument,
-    points: Optional[Path] = typer.Option(None, "--points", help="Mobile campaign points (LAS/LAZ with GPS time).",
-                                          dir_okay=False),
-    trajectory: Optional[Path] = typer.Option(None, "--trajectory", help="Trajectory CSV of the mobile campaign.",
-                                              dir_okay=False),
+    points: Optional[Path] = typer.Option(None, "--points", help="Mobile campaign points: LAS/LAZ, PLY or text "
+                                          "(.xyz/.txt/.csv); see docs/mls.md.", dir_okay=False),
+    trajectory: Optional[Path] = typer.Option(None, "--trajectory", help="Trajectory CSV of the mobile campaign "
+                                              "(the points need GPS time); without it the points' sensor origins "
+                                              "or a path estimated from the cloud.", dir_okay=False),
     aerial: Optional[Path] = typer.Option(None, "--aerial", help="Aerial scan (LAS/LAZ): adds roof planes.",
                                           dir_okay=False),
     footprints: Optional[Path] = typer.Option(None, "--footprints", "-f", help="Building footprints (GeoJSON); "
@@ -95,6 +97,8 @@ def update_command(
                                               dir_okay=False),
     id_field: Optional[str] = IdFieldOption,
     crs: Optional[str] = CrsOption,
+    columns: Optional[str] = typer.Option(None, "--columns", help="Columns of a text point file, e.g. "
+                                          "x,y,z,intensity,gps_time ('_' skips one); default: its header line."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes for the buildings of a mobile "
                                           "campaign (dask LocalCluster; default 1: this process)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address for multi-machine "
@@ -105,7 +109,7 @@ def update_command(
     """Fuse one campaign into the map (created if missing): façades, layers, windows, doors, occlusions or roofs."""
     from lidarmap.map.apply import apply_campaign, campaign_inputs
 
-    inputs = campaign_inputs(points, trajectory, aerial, footprints, id_field, crs)
+    inputs = campaign_inputs(points, trajectory, aerial, footprints, id_field, crs, columns)
     params = stage_params(config)
     update = update_params(config, workers, scheduler)
     with progress(transient=True) as bar:

@@ -34,6 +34,7 @@ class CampaignData:
     ground_index: _XYIndex | None = None
     ground_ids: np.ndarray | None = None
     source: str | None = None
+    noise_factor: float = 1.0  # > 1: the campaign's Gaussians are widened in fusion (an estimated sensor path)
 
 
 def campaign_track(trajectory: Trajectory, t_min: float, t_max: float, step: float) -> np.ndarray:

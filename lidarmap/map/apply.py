@@ -26,12 +26,12 @@ from lidarmap.errors import ConfigError, CRSError, InputError
 from lidarmap.export.summary import count_map
 from lidarmap.io.crs import horizontal_crs, same_crs
 from lidarmap.io.footprints import check_overlap, read_footprints
-from lidarmap.io.las import read_las
-from lidarmap.io.trajectory import read_trajectory
+from lidarmap.io.points import read_points
 from lidarmap.map import refine
 from lidarmap.map.model import BuildingMap, Campaign
 from lidarmap.map.store import MapStore, campaign_fingerprint, writer_lock
-from lidarmap.map.update import UpdateParams, fuse_campaign, las_source
+from lidarmap.map.mls import mobile_campaign
+from lidarmap.map.update import UpdateParams, fuse_campaign
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +46,7 @@ class CampaignInputs:
     footprints: Path | None
     id_field: str
     crs: str | None
+    columns: str | None = None  # a text point file's column spec (lidarmap.io.xyz)
 
     @property
     def source(self) -> str:
@@ -54,21 +55,20 @@ class CampaignInputs:
 
 
 def campaign_inputs(points: Path | None, trajectory: Path | None, aerial: Path | None, footprints: Path | None,
-                    id_field: str | None, crs: str | None) -> CampaignInputs:
-    """Check the option combination of ``map update`` (one line per mistake)."""
+                    id_field: str | None, crs: str | None, columns: str | None = None) -> CampaignInputs:
+    """Check the option combination of ``map update`` (one line per mistake). Without ``trajectory`` a mobile
+    campaign's sensor positions come from the points (origins, or a path estimated from the cloud: docs/mls.md)."""
     if points is None and aerial is None:
         raise ConfigError("map update needs --points (a mobile campaign) or --aerial (an aerial scan)")
     if points is not None and aerial is not None:
         raise ConfigError("--points and --aerial cannot be combined: one campaign per update")
-    if points is not None and trajectory is None:
-        raise ConfigError("--points needs --trajectory (the vehicle trajectory CSV of the campaign)")
     if points is not None and footprints is None:
         raise ConfigError("--points needs --footprints (building footprints, GeoJSON)")
     if aerial is not None and trajectory is not None:
         raise ConfigError("--trajectory belongs to a mobile campaign (--points), not to --aerial")
     kind = "mobile" if points is not None else "aerial"
     return CampaignInputs(kind=kind, points=Path(points if points is not None else aerial), trajectory=trajectory,
-                          footprints=footprints, id_field=id_field or "id", crs=crs)
+                          footprints=footprints, id_field=id_field or "id", crs=crs, columns=columns)
 
 
 def _refuse_applied(store: MapStore, fingerprint: str, inputs: CampaignInputs) -> None:
@@ -122,14 +122,16 @@ class _Points:
     bounds: tuple[float, float, float, float]
     cloud: PointCloud | None = None
     stream: Any = None  # lidarmap.map.update.CampaignSource
+    mobile: Any = None  # lidarmap.map.mls.MobileCampaign: the stream with its trajectory and sensor mode
 
 
 def _read_points(inputs: CampaignInputs, update: Any) -> _Points:
     """Aerial scans are read whole; of a mobile campaign only the header here (the update streams it)."""
     if inputs.kind == "mobile":
-        stream = las_source(inputs.points, inputs.crs, update.chunk_points)
-        return _Points(stream.crs, stream.n_points, (*stream.lo, *stream.hi), stream=stream)
-    cloud = read_las(inputs.points, crs=inputs.crs)
+        mobile = mobile_campaign(inputs.points, inputs.trajectory, inputs.crs, inputs.columns, update.chunk_points)
+        stream = mobile.source
+        return _Points(stream.crs, stream.n_points, (*stream.lo, *stream.hi), stream=stream, mobile=mobile)
+    cloud = read_points(inputs.points, crs=inputs.crs, columns=inputs.columns)
     if len(cloud) == 0:
         raise InputError("the point cloud is empty", inputs.points)
     lo, hi = cloud.xyz.min(axis=0), cloud.xyz.max(axis=0)
@@ -153,10 +155,10 @@ def _new_map(stored: BuildingMap, points: _Points, footprints: Footprints, input
     facade_params, refine_params = params
     if inputs.kind == "aerial":
         return _Fused(refine.add_aerial(stored, points.cloud, footprints, refine_params, campaign_id, seed), {})
-    trajectory = read_trajectory(inputs.trajectory)
     with tempfile.TemporaryDirectory(dir=map_path.resolve().parent, prefix=f".{map_path.name}.spool-") as spool:
-        fused = fuse_campaign(stored, points.stream, trajectory, footprints, facade_params, refine_params,
-                              campaign_id, seed, update=update, spool_dir=Path(spool) / "points", progress=progress)
+        fused = fuse_campaign(stored, points.stream, points.mobile.trajectory, footprints, facade_params,
+                              refine_params, campaign_id, seed, update=update, spool_dir=Path(spool) / "points",
+                              progress=progress, noise_factor=points.mobile.noise_factor)
     return _Fused(fused.map, fused.failed)
 
 
@@ -171,16 +173,19 @@ class UpdateResult:
     failed: dict[str, str] = dataclasses.field(default_factory=dict)
 
 
-def _campaign_record(inputs: CampaignInputs, campaign_id: int, fingerprint: str, n_points: int,
+def _campaign_record(inputs: CampaignInputs, campaign_id: int, fingerprint: str, points: _Points,
                      counts: dict[str, int], seconds: float, seed: int, failed: dict[str, str]) -> Campaign:
-    """The campaign row: what was applied, its fingerprint, the map's counts after it (``map history``) and the
-    buildings it could not update (``failed``: {id: reason})."""
+    """The campaign row: what was applied, its fingerprint, the map's counts after it (``map history``), the
+    buildings it could not update (``failed``: {id: reason}) and, for a mobile campaign, where its sensor positions
+    came from (``sensors``; an estimated path also ``noise_factor``)."""
     files = {name: str(path.resolve()) for name, path in (("points", inputs.points), ("trajectory", inputs.trajectory),
                                                            ("footprints", inputs.footprints)) if path is not None}
+    sensors = {} if points.mobile is None else {"sensors": points.mobile.mode,
+                                                "noise_factor": points.mobile.noise_factor}
     return Campaign(campaign_id=campaign_id, kind=inputs.kind, source=inputs.source, fingerprint=fingerprint,
-                    n_points=n_points, created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+                    n_points=points.n_points, created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
                     summary={**counts, "seconds": round(seconds, 3), "seed": seed, "files": files,
-                             "failed": dict(failed)})
+                             "failed": dict(failed), **sensors})
 
 
 def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, Any], seed: int,
@@ -212,7 +217,7 @@ def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, An
                              progress)
             new_map = fused.map
             counts = count_map(new_map)
-            campaign = _campaign_record(inputs, campaign_id, fingerprint, points.n_points, counts,
+            campaign = _campaign_record(inputs, campaign_id, fingerprint, points, counts,
                                         time.perf_counter() - started, seed, fused.failed)
             new_map.campaigns = [*stored.campaigns, campaign]
             step("committing")
