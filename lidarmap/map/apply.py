@@ -30,7 +30,13 @@ from lidarmap.io.points import read_points
 from lidarmap.map import refine
 from lidarmap.map.model import BuildingMap, Campaign
 from lidarmap.map.store import MapStore, campaign_fingerprint, writer_lock
-from lidarmap.map.mls import mobile_campaign
+from lidarmap.map.mls import (
+    DERIVED,
+    discover_campaign,
+    join_given_footprints,
+    merge_discovered,
+    mobile_campaign,
+)
 from lidarmap.map.update import UpdateParams, fuse_campaign
 
 log = logging.getLogger(__name__)
@@ -62,8 +68,6 @@ def campaign_inputs(points: Path | None, trajectory: Path | None, aerial: Path |
         raise ConfigError("map update needs --points (a mobile campaign) or --aerial (an aerial scan)")
     if points is not None and aerial is not None:
         raise ConfigError("--points and --aerial cannot be combined: one campaign per update")
-    if points is not None and footprints is None:
-        raise ConfigError("--points needs --footprints (building footprints, GeoJSON)")
     if aerial is not None and trajectory is not None:
         raise ConfigError("--trajectory belongs to a mobile campaign (--points), not to --aerial")
     kind = "mobile" if points is not None else "aerial"
@@ -102,14 +106,38 @@ def map_footprints(building_map: BuildingMap, source: Path) -> Footprints:
                       crs=horizontal_crs(CRS.from_user_input(building_map.crs_wkt)), source=str(source))
 
 
-def _campaign_footprints(inputs: CampaignInputs, crs: CRS, bounds: tuple[float, float, float, float],
-                         stored: BuildingMap, map_path: Path) -> Footprints:
+def _campaign_footprints(inputs: CampaignInputs, points: _Points, stored: BuildingMap, map_path: Path,
+                         fparams: Any, seed: int) -> tuple[Footprints, dict[str, tuple]]:
+    """The footprints the campaign runs with, and the footprint changes the map takes after it ({building id:
+    (polygon, attributes or None to keep them)}): the footprint file (joined to buildings the map found from the
+    points), else the map's buildings (aerial), else for a mobile campaign the map's buildings and those found in
+    its points (:mod:`lidarmap.map.mls`, docs/mls.md)."""
+    known = map_footprints(stored, map_path) if stored.buildings else None
     if inputs.footprints is not None:
-        footprints = read_footprints(inputs.footprints, id_field=inputs.id_field, crs=crs)
-    else:
+        footprints = read_footprints(inputs.footprints, id_field=inputs.id_field, crs=points.crs)
+        check_overlap(footprints, points.bounds, inputs.points.name)
+        return join_given_footprints(footprints, known) if inputs.kind == "mobile" else (footprints, {})
+    if inputs.kind == "aerial":
         footprints = map_footprints(stored, map_path)
-    check_overlap(footprints, bounds, inputs.points.name)
-    return footprints
+        check_overlap(footprints, points.bounds, inputs.points.name)
+        return footprints, {}
+    found = discover_campaign(points.mobile, fparams, seed=seed)
+    log.info("%s: %d building(s) found from the points", inputs.points, len(found))
+    if not found and known is None:
+        raise InputError("no building found in the points (no vertical walls seen): give --footprints", inputs.points)
+    footprints, grown = merge_discovered(known, found, horizontal_crs(points.crs), str(inputs.points))
+    return footprints, {bid: (polygon, None) for bid, polygon in grown.items()}
+
+
+def _store_footprints(new_map: BuildingMap, changes: dict[str, tuple]) -> None:
+    """Footprints grown by a campaign or given for buildings found from the points, into the new map."""
+    for bid, (polygon, attributes) in changes.items():
+        building = new_map.buildings.get(bid)
+        if building is None:
+            continue
+        building.footprint = polygon
+        if attributes is not None:
+            building.attributes = {k: v for k, v in attributes.items() if k != DERIVED}
 
 
 @dataclasses.dataclass
@@ -210,12 +238,13 @@ def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, An
             crs = _map_crs(points.crs, store, inputs.points)
             stored = store.load() if store is not None else BuildingMap(crs_wkt=crs.to_wkt())
             step("reading footprints")
-            footprints = _campaign_footprints(inputs, points.crs, points.bounds, stored, map_path)
+            footprints, footprint_changes = _campaign_footprints(inputs, points, stored, map_path, params[0], seed)
             campaign_id = store.next_campaign_id() if store is not None else 1
             step("refining the map")
             fused = _new_map(stored, points, footprints, inputs, params, update, campaign_id, seed, map_path,
                              progress)
             new_map = fused.map
+            _store_footprints(new_map, footprint_changes)
             counts = count_map(new_map)
             campaign = _campaign_record(inputs, campaign_id, fingerprint, points, counts,
                                         time.perf_counter() - started, seed, fused.failed)

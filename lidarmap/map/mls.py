@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from lidarmap.core import PointCloud, Trajectory
+from lidarmap.core import Footprints, PointCloud, Trajectory
 from lidarmap.errors import InputError
 from lidarmap.facade.sensors import (
     SensorParams,
@@ -145,3 +145,89 @@ def mobile_campaign(points: Path, trajectory: Path | None, crs: Any, columns: st
         return MobileCampaign(source(), track, MODES[2], params.noise_factor)
     return MobileCampaign(source(lambda first, chunk: path_times(path, chunk.xyz[:, :2])),
                           path_trajectory(path, str(points)), MODES[3], params.noise_factor)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Without footprints: buildings found from the points, kept by the map
+
+
+#: Attribute marking a building whose footprint was derived from the points (lidarmap.facade.discover).
+DERIVED = "derived_footprint"
+
+
+def _track_positions(trajectory: Trajectory, most: int = 200_000) -> np.ndarray:
+    step = max(1, len(trajectory.xyz) // most)
+    return trajectory.xyz[::step]
+
+
+def discover_campaign(mobile: MobileCampaign, fparams: Any, params: Any = None, seed: int = 0) -> list:
+    """The buildings of a campaign found from its points alone (:func:`lidarmap.facade.discover.discover_buildings`):
+    one pass for the campaign's classes (the façade steps' rule), one for the wall cells."""
+    from lidarmap.facade.discover import DiscoverParams, WallCells, discover_buildings
+    from lidarmap.facade.scan import CampaignScan
+
+    params = params or DiscoverParams()
+    source = mobile.source
+    scan = CampaignScan(source.lo, fparams, source.source)
+    for chunk in source.chunks():
+        scan.add(chunk)
+    classes = scan.classes()
+    cells = WallCells(source.lo, params.cell)
+    for chunk in source.chunks():
+        _, building = classes.masks(chunk.xyz, chunk.attrs.get("classification"))
+        cells.add(chunk.xyz[building])
+    return discover_buildings(cells, _track_positions(mobile.trajectory), params, seed)
+
+
+def merge_discovered(stored: Footprints | None, found: list, crs: Any,
+                     source: str | None) -> tuple[Footprints, dict[str, Any]]:
+    """The footprints a campaign without footprint file runs with: the map's buildings (a derived footprint grown by
+    the campaign's view of it) and the buildings found that overlap none of them (new, with their own ids).
+    Returns them and {building id: grown derived footprint} for the map to store."""
+    from shapely import STRtree
+
+    ids = list(stored.ids) if stored is not None else []
+    polygons = list(stored.polygons) if stored is not None else []
+    props = [dict(p) for p in stored.properties] if stored is not None else []
+    tree = STRtree(np.array(polygons, dtype=object)) if polygons else None
+    grown: dict[str, Any] = {}
+    for b in found:
+        hits = [] if tree is None else [int(k) for k in tree.query(b.footprint, predicate="intersects")]
+        overlap = [(polygons[k].intersection(b.footprint).area, k) for k in hits]
+        overlap = [(a, k) for a, k in overlap if a > 0]
+        if not overlap:
+            ids.append(b.building_id)
+            polygons.append(b.footprint)
+            props.append({DERIVED: True})
+            continue
+        _, k = max(overlap)
+        if props[k].get(DERIVED):  # the campaign saw more of a building found before: its footprint grows
+            polygons[k] = grown[ids[k]] = polygons[k].union(b.footprint).buffer(0)
+    array = np.empty(len(polygons), dtype=object)
+    array[:] = polygons
+    return Footprints(ids=ids, polygons=array, properties=props, crs=crs, source=source), grown
+
+
+def join_given_footprints(given: Footprints, stored: Footprints | None) -> tuple[Footprints, dict[str, tuple]]:
+    """Footprints given for a map that holds buildings found from the points: each such building takes the given
+    footprint overlapping it most (its id kept; the footprint's own id stored as ``footprint_id``). Returns the
+    footprints to run with and {building id: (footprint polygon, properties)} for the map to store."""
+    if stored is None:
+        return given, {}
+    derived = [k for k, p in enumerate(stored.properties) if p.get(DERIVED)]
+    ids = list(given.ids)
+    props = [dict(p) for p in given.properties]
+    joined: dict[str, tuple] = {}
+    taken: set[int] = set()
+    for k in derived:
+        overlap = [(stored.polygons[k].intersection(poly).area, j) for j, poly in enumerate(given.polygons)
+                   if j not in taken]
+        overlap = [(a, j) for a, j in overlap if a > 0]
+        if not overlap:
+            continue
+        _, j = max(overlap)
+        taken.add(j)
+        props[j] = {**props[j], "footprint_id": ids[j]}
+        ids[j] = stored.ids[k]
+        joined[ids[j]] = (given.polygons[j], props[j])
+    return Footprints(ids=ids, polygons=given.polygons, properties=props, crs=given.crs, source=given.source), joined
