@@ -182,7 +182,7 @@ def _smooth_line(xy: np.ndarray, window: int) -> np.ndarray:
 
 
 @dataclasses.dataclass
-class SensorPath:
+class SensorLine:
     """An estimated sensor path: positions (CRS, every ``step`` m along it) and their arc lengths."""
 
     xyz: np.ndarray
@@ -208,7 +208,7 @@ EXTEND = 30.0  # m the strip's skeleton is continued at both ends before the ref
 
 
 def estimate_path(xyz: np.ndarray, classification: np.ndarray | None, params: SensorParams,
-                  source: str | None = None) -> SensorPath:
+                  source: str | None = None) -> SensorLine:
     """The sensor path under which the cloud was scanned (module doc); ``xyz``: a sample of the campaign."""
     ground = ground_points(xyz, classification, params.cell)
     if len(ground) < 100:
@@ -227,7 +227,7 @@ def estimate_path(xyz: np.ndarray, classification: np.ndarray | None, params: Se
     xy = lo + (cells + 0.5) * params.cell
     xy = _resample(_smooth_line(_resample(xy, STEP), int(params.path_smooth / STEP / 2)), STEP)
     xy = _extend(xy, EXTEND)
-    path = SensorPath(np.column_stack([xy, np.zeros(len(xy))]), np.arange(len(xy)) * STEP)
+    path = SensorLine(np.column_stack([xy, np.zeros(len(xy))]), np.arange(len(xy)) * STEP)
     for _ in range(2):
         path = _refine(path, ground, params)
     return _trim(path, ground, params)
@@ -243,7 +243,7 @@ def _extend(xy: np.ndarray, length: float) -> np.ndarray:
     return np.concatenate([xy[0] + steps * head, xy, xy[-1] + steps[::-1] * tail])
 
 
-def _trim(path: SensorPath, ground: np.ndarray, params: SensorParams) -> SensorPath:
+def _trim(path: SensorLine, ground: np.ndarray, params: SensorParams) -> SensorLine:
     """The path cut to the stretch the ground near it covers (the extension beyond the scan's ends removed)."""
     s, c = path.project(ground[:, :2])
     near = s[np.abs(c) <= params.refine_window]
@@ -251,7 +251,7 @@ def _trim(path: SensorPath, ground: np.ndarray, params: SensorParams) -> SensorP
         return path
     a, b = np.searchsorted(path.s, [np.percentile(near, 0.05), np.percentile(near, 99.95)])
     a, b = max(a - 1, 0), min(b + 1, len(path.s))
-    return SensorPath(path.xyz[a:b], path.s[a:b] - path.s[a])
+    return SensorLine(path.xyz[a:b], path.s[a:b] - path.s[a])
 
 
 def _binned_median(s: np.ndarray, values: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -275,7 +275,7 @@ def _fill(values: np.ndarray) -> np.ndarray:
     return np.interp(np.arange(len(values)), np.flatnonzero(ok), values[ok])
 
 
-def _refine(path: SensorPath, ground: np.ndarray, params: SensorParams) -> SensorPath:
+def _refine(path: SensorLine, ground: np.ndarray, params: SensorParams) -> SensorLine:
     """The path moved across to the median offset of the nearby ground, every 2 m of track; z on the ground."""
     s, c = path.project(ground[:, :2])
     near = np.abs(c) <= params.refine_window
@@ -291,20 +291,20 @@ def _refine(path: SensorPath, ground: np.ndarray, params: SensorParams) -> Senso
     xy = _resample(_smooth_line(xy, int(params.path_smooth / STEP / 2)), STEP)
     s_new = np.arange(len(xy)) * STEP
     z = np.interp(s_new * (path.s[-1] / max(s_new[-1], 1e-9)), mids, height) + params.sensor_height
-    return SensorPath(np.column_stack([xy, z]), s_new)
+    return SensorLine(np.column_stack([xy, z]), s_new)
 
 
-def path_times(path: SensorPath, xy: np.ndarray) -> np.ndarray:
+def path_times(path: SensorLine, xy: np.ndarray) -> np.ndarray:
     """Each point's "time" on an estimated path without GPS time: the arc length its position projects to."""
     return path.project(xy)[0]
 
 
-def path_trajectory(path: SensorPath, source: str | None = None) -> Trajectory:
+def path_trajectory(path: SensorLine, source: str | None = None) -> Trajectory:
     """The estimated path as a trajectory over arc length (:func:`path_times`)."""
     return Trajectory(time=path.s.copy(), xyz=path.xyz.copy(), source=source)
 
 
-def timed_path(path: SensorPath, gps: np.ndarray, xy: np.ndarray, params: SensorParams,
+def timed_path(path: SensorLine, gps: np.ndarray, xy: np.ndarray, params: SensorParams,
                source: str | None = None) -> Trajectory:
     """The estimated path over GPS time: per ``time_bin`` the median arc length of the points scanned then."""
     s = path_times(path, xy)

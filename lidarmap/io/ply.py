@@ -312,7 +312,7 @@ def _typed(values: np.ndarray, code: str, prop: str, path: Path, first: int) -> 
         if bad.any():
             row = first + int(np.flatnonzero(bad)[0]) + 1
             raise InputError(f"mixed types: property {prop!r} is declared {dtype.name} but vertex {row} holds "
-                             f"{values[bad][0]!r}", path)
+                             f"{float(values[bad][0]):g}", path)
         info = np.iinfo(dtype)
         if values.min() < info.min or values.max() > info.max:
             raise InputError(f"property {prop!r} holds values outside the {dtype.name} range", path)
