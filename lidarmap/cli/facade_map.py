@@ -79,6 +79,15 @@ def update_params(config: Path | None, workers: int | None = None, scheduler: st
     return params_from(UpdateParams, config, workers=workers, scheduler=scheduler)
 
 
+def mls_params(config: Path | None) -> tuple[Any, Any]:
+    """SensorParams (``[sensors]``) and DiscoverParams (``[discover]``): campaigns without trajectory file or
+    footprints (docs/mls.md)."""
+    from lidarmap.facade.discover import DiscoverParams
+    from lidarmap.facade.sensors import SensorParams
+
+    return params_from(SensorParams, config), params_from(DiscoverParams, config)
+
+
 _UPDATE_STEPS = ("fingerprint", "reading points", "reading footprints", "refining the map", "committing")
 
 
@@ -121,7 +130,8 @@ def update_command(
         def buildings(done: int, total: int) -> None:
             bar.update(task, description=f"refining the map ({done}/{total} buildings)")
 
-        result = apply_campaign(map_path, inputs, params, 0 if seed is None else seed, step, update, buildings)
+        result = apply_campaign(map_path, inputs, params, 0 if seed is None else seed, step, update, buildings,
+                                *mls_params(config))
     _print_update(map_path, result)
 
 

@@ -206,8 +206,21 @@ def ply_crs(header: PlyHeader, user_crs: str | CRS | None, path: Path) -> CRS | 
     return resolve_crs(parse_crs(text, str(path)) if text else None, user_crs, path)
 
 
-def _cloud(columns: dict[str, np.ndarray], crs: CRS | None, path: Path, first: int) -> PointCloud:
-    xyz = np.column_stack([np.asarray(columns[c], dtype=np.float64) for c in ("x", "y", "z")])
+def _xyz(columns: dict[str, np.ndarray], records: np.ndarray | None) -> np.ndarray:
+    """Coordinates (N, 3) float64: one strided copy when x, y, z are three adjacent doubles of the records."""
+    if records is not None:
+        from numpy.lib.recfunctions import structured_to_unstructured
+
+        return np.ascontiguousarray(structured_to_unstructured(records[["x", "y", "z"]], dtype=np.float64))
+    xyz = np.empty((len(columns["x"]), 3))
+    for k, c in enumerate(("x", "y", "z")):
+        xyz[:, k] = columns[c]
+    return xyz
+
+
+def _cloud(columns: dict[str, np.ndarray], crs: CRS | None, path: Path, first: int,
+           records: np.ndarray | None = None) -> PointCloud:
+    xyz = _xyz(columns, records)
     if not np.all(np.isfinite(xyz)):
         bad = int(np.flatnonzero(~np.all(np.isfinite(xyz), axis=1))[0])
         raise InputError(f"NaN or infinite coordinates (point {first + bad})", path)
@@ -218,7 +231,7 @@ def _cloud(columns: dict[str, np.ndarray], crs: CRS | None, path: Path, first: i
             continue
         name = field_name(prop)
         if name in STANDARD_ATTRS and _fits(name, values):
-            attrs[name] = np.asarray(values).astype(STANDARD_ATTRS[name])
+            attrs[name] = np.asarray(values).astype(STANDARD_ATTRS[name], copy=False)
         else:  # not a standard attribute, or values that do not fit its type (Semantic3D's signed intensity)
             name = name if name not in STANDARD_ATTRS else f"{name}_raw"
             attrs[name] = np.array(values, dtype=np.float64 if name in ORIGIN_FIELDS else values.dtype.newbyteorder("="))
@@ -229,7 +242,7 @@ def _cloud(columns: dict[str, np.ndarray], crs: CRS | None, path: Path, first: i
 def _fits(name: str, values: np.ndarray) -> bool:
     """Whether the values fit lidarmap's dtype of a standard attribute (integers in range)."""
     dtype = STANDARD_ATTRS[name]
-    if dtype.kind not in "ui" or not len(values):
+    if dtype.kind not in "ui" or not len(values) or np.can_cast(values.dtype, dtype):
         return True
     if values.dtype.kind == "f" and (not np.all(np.isfinite(values)) or np.any(values != np.round(values))):
         return False
@@ -257,7 +270,7 @@ def iter_ply(path: str | Path, chunk_size: int = CHUNK_POINTS, crs: str | CRS | 
     records = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=(count,))
     for first in range(0, count, chunk_size):
         part = records[first:first + chunk_size]
-        yield _cloud({p: part[p] for p in keep}, file_crs, path, first)
+        yield _cloud({p: part[p] for p in keep}, file_crs, path, first, part)
 
 
 def _iter_ascii(path: Path, header: PlyHeader, chunk_size: int, crs: CRS | None,

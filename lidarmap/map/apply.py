@@ -107,7 +107,7 @@ def map_footprints(building_map: BuildingMap, source: Path) -> Footprints:
 
 
 def _campaign_footprints(inputs: CampaignInputs, points: _Points, stored: BuildingMap, map_path: Path,
-                         fparams: Any, seed: int) -> tuple[Footprints, dict[str, tuple]]:
+                         fparams: Any, seed: int, discover: Any = None) -> tuple[Footprints, dict[str, tuple]]:
     """The footprints the campaign runs with, and the footprint changes the map takes after it ({building id:
     (polygon, attributes or None to keep them)}): the footprint file (joined to buildings the map found from the
     points), else the map's buildings (aerial), else for a mobile campaign the map's buildings and those found in
@@ -121,7 +121,7 @@ def _campaign_footprints(inputs: CampaignInputs, points: _Points, stored: Buildi
         footprints = map_footprints(stored, map_path)
         check_overlap(footprints, points.bounds, inputs.points.name)
         return footprints, {}
-    found = discover_campaign(points.mobile, fparams, seed=seed)
+    found = discover_campaign(points.mobile, fparams, discover, seed)
     log.info("%s: %d building(s) found from the points", inputs.points, len(found))
     if not found and known is None:
         raise InputError("no building found in the points (no vertical walls seen): give --footprints", inputs.points)
@@ -153,10 +153,11 @@ class _Points:
     mobile: Any = None  # lidarmap.map.mls.MobileCampaign: the stream with its trajectory and sensor mode
 
 
-def _read_points(inputs: CampaignInputs, update: Any) -> _Points:
+def _read_points(inputs: CampaignInputs, update: Any, sensors: Any = None) -> _Points:
     """Aerial scans are read whole; of a mobile campaign only the header here (the update streams it)."""
     if inputs.kind == "mobile":
-        mobile = mobile_campaign(inputs.points, inputs.trajectory, inputs.crs, inputs.columns, update.chunk_points)
+        mobile = mobile_campaign(inputs.points, inputs.trajectory, inputs.crs, inputs.columns, update.chunk_points,
+                                 sensors)
         stream = mobile.source
         return _Points(stream.crs, stream.n_points, (*stream.lo, *stream.hi), stream=stream, mobile=mobile)
     cloud = read_points(inputs.points, crs=inputs.crs, columns=inputs.columns)
@@ -218,11 +219,14 @@ def _campaign_record(inputs: CampaignInputs, campaign_id: int, fingerprint: str,
 
 def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, Any], seed: int,
                    step: Callable[[str], None] = lambda name: None, update: Any = None,
-                   progress: Callable[[int, int], None] = lambda done, total: None) -> UpdateResult:
+                   progress: Callable[[int, int], None] = lambda done, total: None, sensors: Any = None,
+                   discover: Any = None) -> UpdateResult:
     """Fuse one campaign into the map (created when missing) in one transaction, under the writer lock.
 
     ``update``: :class:`lidarmap.map.update.UpdateParams` (workers, scheduler, chunking of a mobile campaign;
-    default: this process). ``progress(done, total)`` after every building of a mobile campaign.
+    default: this process). ``progress(done, total)`` after every building of a mobile campaign. ``sensors``
+    (:class:`lidarmap.facade.sensors.SensorParams`) and ``discover`` (:class:`lidarmap.facade.discover.DiscoverParams`):
+    a mobile campaign without trajectory file or footprints (default parameters when ``None``).
     """
     update = update or UpdateParams()
     started = time.perf_counter()
@@ -234,11 +238,12 @@ def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, An
             if store is not None:
                 _refuse_applied(store, fingerprint, inputs)
             step("reading points")
-            points = _read_points(inputs, update)
+            points = _read_points(inputs, update, sensors)
             crs = _map_crs(points.crs, store, inputs.points)
             stored = store.load() if store is not None else BuildingMap(crs_wkt=crs.to_wkt())
             step("reading footprints")
-            footprints, footprint_changes = _campaign_footprints(inputs, points, stored, map_path, params[0], seed)
+            footprints, footprint_changes = _campaign_footprints(inputs, points, stored, map_path, params[0], seed,
+                                                                 discover)
             campaign_id = store.next_campaign_id() if store is not None else 1
             step("refining the map")
             fused = _new_map(stored, points, footprints, inputs, params, update, campaign_id, seed, map_path,
