@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import itertools
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -284,27 +286,42 @@ def _iter_ascii(path: Path, header: PlyHeader, chunk_size: int, crs: CRS | None,
     with path.open("rb") as fh:
         fh.seek(header.data_offset)
         while seen < count:
-            lines = []
-            for line in fh:
-                if line.strip():
-                    lines.append(line)
-                if len(lines) >= min(chunk_size, count - seen):
-                    break
+            lines = list(itertools.islice(fh, min(chunk_size, count - seen)))
             if not lines:
                 break
-            table = _parse_rows(lines, len(props), path, header_lines=0, first=seen)
+            table = _parse_rows(lines, len(props), path, first=seen)
+            if not len(table):
+                continue
             columns = {p: _typed(table[:, k], t, p, path, seen) for k, (p, t) in enumerate(props) if p in keep}
             yield _cloud(columns, crs, path, seen)
-            seen += len(lines)
+            seen += len(table)
         if seen < count:
             raise InputError(f"truncated: header promises {count} vertices, file holds {seen}", path)
         if len(header.elements) == 1 and any(line.strip() for line in fh):
             raise InputError(f"header says {count} vertices but the file holds more rows", path)
 
 
-def _parse_rows(lines: list[bytes], n_cols: int, path: Path, header_lines: int, first: int,
-                delimiter: str | None = None) -> np.ndarray:
-    """Rows of numbers (float64), one-line errors for a row with another number of values or a non-number."""
+def _parse_rows(lines: list[bytes], n_cols: int, path: Path, first: int, delimiter: str | None = None,
+                comments: tuple[bytes, ...] = ()) -> np.ndarray:
+    """Rows of numbers (float64), one-line errors for a row with another number of values or a non-number.
+
+    Fast path: the block parsed as one run of numbers (``numpy.fromstring``), accepted when it holds exactly
+    ``n_cols`` numbers per line; otherwise (blank or comment lines, a bad row) ``numpy.loadtxt`` on the data lines,
+    which names what is wrong."""
+    block = b"".join(lines)
+    if delimiter:
+        block = block.replace(delimiter.encode(), b" ")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            flat = np.fromstring(block, sep=" ")
+        if flat.size == len(lines) * n_cols:
+            return flat.reshape(len(lines), n_cols)
+    except (ValueError, DeprecationWarning):
+        pass
+    lines = [line for line in lines if line.strip() and not line.lstrip().startswith(comments or (b"\0",))]
+    if not lines:
+        return np.zeros((0, n_cols))
     try:
         table = np.loadtxt(io.BytesIO(b"".join(lines)), dtype=np.float64, ndmin=2, delimiter=delimiter,
                            comments=None)

@@ -17,6 +17,7 @@ the file.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -131,17 +132,14 @@ def iter_text(path: str | Path, chunk_size: int = CHUNK_POINTS, crs: str | CRS |
         for _ in range(layout.skip_lines):
             fh.readline()
         while True:
-            lines = []
-            for line in fh:
-                if not _is_comment(line.decode("utf-8", errors="replace")):
-                    lines.append(line)
-                if len(lines) >= chunk_size:
-                    break
+            lines = list(itertools.islice(fh, chunk_size))
             if not lines:
                 break
-            table = _parse_rows(lines, len(layout.columns), path, layout.skip_lines, seen, layout.delimiter)
+            table = _parse_rows(lines, len(layout.columns), path, seen, layout.delimiter, (b"#", b"//"))
+            if not len(table):
+                continue
             cols = {name: table[:, k] for k, name in enumerate(layout.columns) if name != SKIP}
             yield _cloud(cols, file_crs, path, seen)
-            seen += len(lines)
+            seen += len(table)
     if not seen:
         raise InputError("no points in the file", path)
