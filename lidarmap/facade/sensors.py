@@ -195,7 +195,8 @@ class SensorLine:
         """Arc length of each point's foot on the path and its signed offset (left positive)."""
         tree = cKDTree(self.xyz[:, :2])
         _, k = tree.query(xy, workers=1)
-        tangent = np.gradient(self.xyz[:, :2], axis=0)
+        # the direction over +-TANGENT_SPAN m: a far point's foot must not follow the path's small wiggles
+        tangent = np.gradient(_smooth_line(self.xyz[:, :2], int(TANGENT_SPAN / STEP)), axis=0)
         tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
         d = xy - self.xyz[k, :2]
         along = np.einsum("ij,ij->i", d, tangent[k])
@@ -204,6 +205,7 @@ class SensorLine:
 
 
 STEP = 0.5  # m between the estimated path's samples
+TANGENT_SPAN = 10.0  # m either side over which the path's direction is measured when projecting points
 EXTEND = 30.0  # m the strip's skeleton is continued at both ends before the refinement and the trim
 
 
