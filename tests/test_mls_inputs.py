@@ -235,6 +235,7 @@ def test_update_without_trajectory_or_origins_estimates_the_path(scene, tmp_path
     assert f1 >= 0.9
     campaign = building_map.campaigns[-1]
     assert campaign.summary["sensors"] == "estimated from the cloud" and campaign.summary["noise_factor"] == 2.0
+    assert campaign.source == "bare.ply [estimated from the cloud]"  # what map history shows
 
 
 def test_update_without_footprints_finds_the_buildings_and_joins_footprints_given_later(scene, tmp_path) -> None:

@@ -211,7 +211,9 @@ def _campaign_record(inputs: CampaignInputs, campaign_id: int, fingerprint: str,
                                                            ("footprints", inputs.footprints)) if path is not None}
     sensors = {} if points.mobile is None else {"sensors": points.mobile.mode,
                                                 "noise_factor": points.mobile.noise_factor}
-    return Campaign(campaign_id=campaign_id, kind=inputs.kind, source=inputs.source, fingerprint=fingerprint,
+    source = inputs.source + (f" [{points.mobile.mode}]" if points.mobile is not None and
+                              points.mobile.mode != "trajectory" else "")
+    return Campaign(campaign_id=campaign_id, kind=inputs.kind, source=source, fingerprint=fingerprint,
                     n_points=points.n_points, created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
                     summary={**counts, "seconds": round(seconds, 3), "seed": seed, "files": files,
                              "failed": dict(failed), **sensors})
