@@ -237,6 +237,16 @@ def _corrupt_laz(sim, tmp_path: Path) -> Path:
     return out
 
 
+def _xyz_without_time(sim, tmp_path: Path) -> Path:
+    """The campaign's first points as x y z text: a trajectory file cannot place them (no GPS time)."""
+    from lidarmap.io.las import iter_las
+
+    xyz = next(iter_las(sim.mls[0], chunk_size=1000)).xyz
+    out = tmp_path / "plain.xyz"
+    np.savetxt(out, xyz, fmt="%.3f")
+    return out
+
+
 def _bad_config(sim, tmp_path: Path) -> Path:
     out = tmp_path / "cfg.toml"
     out.write_text("[facade]\nbogus = 1\n")
@@ -250,7 +260,8 @@ BAD = {
     "corrupt laz": (lambda s, t: ["--points", _corrupt_laz(s, t)], "corrupt.laz", "corrupt"),
     "unknown option": (lambda s, t: ["--bogus"], "No such option: --bogus", "lidarmap map update --help"),
     "config": (lambda s, t: ["--config", _bad_config(s, t)], "cfg.toml", "unknown option 'bogus'"),
-    "no trajectory": (lambda s, t: ["--trajectory", None], "--points needs --trajectory", ""),
+    "trajectory without gps time": (lambda s, t: ["--points", _xyz_without_time(s, t), "--crs", "EPSG:32632"],
+                                    "plain.xyz", "the points have no GPS time"),
 }
 
 

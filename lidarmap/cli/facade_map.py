@@ -3,6 +3,7 @@
 ::
 
     lidarmap map update MAP --points MLS.laz --trajectory T.csv --footprints F.geojson   # a mobile campaign
+    lidarmap map update MAP --points MLS.ply [--columns ...] [--crs EPSG:N] [-f F]      # PLY/XYZ (docs/mls.md)
     lidarmap map update MAP --aerial ALS.laz [--footprints F.geojson]                    # roof planes
     lidarmap map show MAP [--building ID] [--as-of N]
     lidarmap map history MAP
@@ -81,16 +82,26 @@ def update_params(config: Path | None, workers: int | None = None, scheduler: st
     return params_from(UpdateParams, config, workers=workers, scheduler=scheduler)
 
 
+def mls_params(config: Path | None) -> tuple[Any, Any]:
+    """SensorParams (``[sensors]``) and DiscoverParams (``[discover]``): campaigns without trajectory file or
+    footprints (docs/mls.md)."""
+    from lidarmap.facade.discover import DiscoverParams
+    from lidarmap.facade.sensors import SensorParams
+
+    return params_from(SensorParams, config), params_from(DiscoverParams, config)
+
+
 _UPDATE_STEPS = ("fingerprint", "reading points", "reading footprints", "refining the map", "committing")
 
 
 @handle_errors
 def update_command(
     map_path: Path = MapArgument,
-    points: Optional[Path] = typer.Option(None, "--points", help="Mobile campaign points (LAS/LAZ with GPS time).",
-                                          dir_okay=False),
-    trajectory: Optional[Path] = typer.Option(None, "--trajectory", help="Trajectory CSV of the mobile campaign.",
-                                              dir_okay=False),
+    points: Optional[Path] = typer.Option(None, "--points", help="Mobile campaign points: LAS/LAZ, PLY or text "
+                                          "(.xyz/.txt/.csv); see docs/mls.md.", dir_okay=False),
+    trajectory: Optional[Path] = typer.Option(None, "--trajectory", help="Trajectory CSV of the mobile campaign "
+                                              "(the points need GPS time); without it the points' sensor origins "
+                                              "or a path estimated from the cloud.", dir_okay=False),
     aerial: Optional[Path] = typer.Option(None, "--aerial", help="Aerial scan (LAS/LAZ): adds roof planes.",
                                           dir_okay=False),
     footprints: Optional[Path] = typer.Option(None, "--footprints", "-f", help="Building footprints (GeoJSON); "
@@ -98,6 +109,8 @@ def update_command(
                                               dir_okay=False),
     id_field: Optional[str] = IdFieldOption,
     crs: Optional[str] = CrsOption,
+    columns: Optional[str] = typer.Option(None, "--columns", help="Columns of a text point file, e.g. "
+                                          "x,y,z,intensity,gps_time ('_' skips one); default: its header line."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes for the buildings of a mobile "
                                           "campaign (dask LocalCluster; default 1: this process)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address for multi-machine "
@@ -110,7 +123,7 @@ def update_command(
     from lidarmap.map.apply import apply_campaign, campaign_inputs
 
     json_mode(json_output)
-    inputs = campaign_inputs(points, trajectory, aerial, footprints, id_field, crs)
+    inputs = campaign_inputs(points, trajectory, aerial, footprints, id_field, crs, columns)
     params = stage_params(config)
     update = update_params(config, workers, scheduler)
     with progress(transient=True) as bar:
@@ -122,7 +135,8 @@ def update_command(
         def buildings(done: int, total: int) -> None:
             bar.update(task, description=f"refining the map ({done}/{total} buildings)")
 
-        result = apply_campaign(map_path, inputs, params, 0 if seed is None else seed, step, update, buildings)
+        result = apply_campaign(map_path, inputs, params, 0 if seed is None else seed, step, update, buildings,
+                                *mls_params(config))
     if json_output:
         echo_json({"map": str(map_path), "campaign": _campaign_json(result.campaign), "counts": result.counts,
                    "changes": result.changes, "failed": result.failed, "seconds": round(result.seconds, 3)})

@@ -35,6 +35,7 @@ class CampaignData:
     ground_ids: np.ndarray | None = None
     source: str | None = None
     gps: np.ndarray | None = None  # GPS time of every point: orders the returns of one scan line (ray evidence)
+    noise_factor: float = 1.0  # > 1: the campaign's Gaussians are widened in fusion (an estimated sensor path)
 
 
 def campaign_track(trajectory: Trajectory, t_min: float, t_max: float, step: float) -> np.ndarray:

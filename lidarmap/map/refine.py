@@ -879,6 +879,7 @@ def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, po
         # wall): the same sample again, with more starts
         retry = fparams.updated(gmm_n_init=max(fparams.layers.gmm_n_init, params.wall_retry_inits))
         new_layers = layer_fit(sdt[keep], cell, retry, np.random.default_rng(seed), seed)
+    new_layers = [dataclasses.replace(la, sigma=la.sigma * camp.noise_factor) for la in new_layers]
     matches, _ = match_layers(stored.layers, stored.main_layer, new_layers, params)
     if not matches:
         return None

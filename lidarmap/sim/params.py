@@ -42,6 +42,12 @@ class SimParams:
         mls_label_error (0.01): fraction of points the simulated classifier labels wrongly.
         mls_misregistration (0.04): largest horizontal shift (metres) of a campaign's rigid misregistration;
             the vertical shift is at most half of it, the rotation about z at most 0.01°. 0 disables it.
+        mls_format ("laz"): how the campaigns are written: "laz" (``mls_<i>.laz``), "ply" (binary little-endian
+            ``mls_<i>.ply``, double coordinates) or "ply_ascii" (ASCII PLY) as public MLS data sets deliver them
+            (docs/mls.md); the trajectory CSV is written in every case.
+        mls_origins (False): PLY only: every point carries its pulse's sensor origin (x_origin, y_origin, z_origin,
+            misregistered like the point).
+        mls_gps_time (True): PLY only: every point carries its GPS time (gps_time).
     Truth
         visibility_cell (0.1): cell size (metres) of the per-façade visibility grids.
     Family (docs/simulator.md, "Hard family")
@@ -93,6 +99,7 @@ class SimParams:
         "gps_drift_vertical": "[0, 1]",
         "visibility_max_incidence": "(0, 90]",
         "visibility_max_spacing": "> 0",
+        "mls_format": "in laz, ply, ply_ascii",
     }
 
     seed: int = 0
@@ -128,6 +135,9 @@ class SimParams:
     gps_drift_vertical: float = 0.05
     visibility_max_incidence: float = 80.0
     visibility_max_spacing: float = 0.3
+    mls_format: str = "laz"
+    mls_origins: bool = False
+    mls_gps_time: bool = True
 
     def __post_init__(self) -> None:
         check_params(self)
