@@ -166,3 +166,62 @@ def test_recipe_data_folder_from_argument_environment_or_beside_the_working_dire
     assert recipe.data_dir(tmp_path / "given") == tmp_path / "given"
     with pytest.raises(Exception, match="ahn3_cropped_1.laz"):
         recipe.read(recipe.DELFT)  # the environment's folder, which does not exist: an error naming the file
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# A tree overhanging a roof: the building's voxels and mesh do not grow into the crown
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def house_with_overhanging_tree(seed: int = 0) -> tuple[PointCloud, np.ndarray]:
+    """A 10 m x 10 m flat-roofed house (roof at 6 m, delivered class 6; walls unlabelled) and a porous crown
+    (centre x = 11 m, radius 2.5 m) hanging 1.5 m over its roof edge; the pulses through the crown end on the roof
+    or the ground (last of several returns). Returns the cloud (metres, no CRS) and the crown mask."""
+    rng = np.random.default_rng(seed)
+    g = np.arange(0.15, 10.0, 0.3)
+    x, y = np.meshgrid(g, g)
+    roof = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, 6.0)])
+    s, z = np.meshgrid(np.arange(0.15, 10.0, 0.5), np.arange(0.25, 6.0, 0.5))
+    s, z = s.ravel(), z.ravel()
+    walls = np.vstack([np.column_stack([s, np.zeros_like(s), z]), np.column_stack([s, np.full_like(s, 10.0), z]),
+                       np.column_stack([np.zeros_like(s), s, z]), np.column_stack([np.full_like(s, 10.0), s, z])])
+    ground = ground_grid(24.0, 0.4) - np.array([6.0, 6.0, 0.0])
+    ground = ground[~((ground[:, 0] > 0) & (ground[:, 0] < 10) & (ground[:, 1] > 0) & (ground[:, 1] < 10))]
+    tree = crown(rng, (11.0, 5.0, 7.5), 2.5, 2500)
+    xyz = np.vstack([roof, walls, ground, tree])
+    parts = [len(roof), len(walls), len(ground), len(tree)]
+    under = np.hypot(xyz[:, 0] - 11.0, xyz[:, 1] - 5.0) < 2.5  # pulses through the crown end below it
+    is_tree = np.repeat([False, False, False, True], parts)
+    count = np.where(is_tree | under, 3, 1).astype(np.uint8)  # returns of the pulse
+    order = np.where(is_tree, rng.integers(1, 3, len(xyz)), count).astype(np.uint8)  # crown: 1st/2nd, below: last
+    attrs = {"classification": np.repeat([6, 1, 2, 1], parts).astype(np.uint8),
+             "number_of_returns": count, "return_number": order,
+             "intensity": np.full(len(xyz), 100, np.uint16)}
+    return PointCloud(xyz, attrs), is_tree
+
+
+def test_a_tree_overhanging_a_roof_does_not_grow_the_building() -> None:
+    from shapely.geometry import box
+
+    from lidarmap.aerial.pipeline import PipelineConfig, RunParams, process_building
+    from lidarmap.aerial.prep import BuildingPoints
+
+    cloud, is_tree = house_with_overhanging_tree()
+    # the worst case: the network calls everything above the ground building, crown included
+    raw = np.where(cloud.attrs["classification"] == 2, 0.0, 1.0).astype(np.float32)
+    filtered = without_vegetation(cloud, raw, PredictParams())
+    assert (filtered[is_tree] < 0.5).mean() > 0.95
+    bp = BuildingPoints(id="house", cloud=cloud, footprint=box(0, 0, 10, 10), properties={}, height=6.0,
+                        height_source="footprint", ground_z=0.0, points_inside=int((~is_tree).sum()))
+    config = PipelineConfig(run=RunParams(stages=("densify",)))
+
+    def extent(probability: np.ndarray) -> tuple[float, float, float]:
+        out = process_building(bp, probability, config)
+        centres = out.voxels.origin + (out.voxels.ijk + 0.5) * out.voxels.size
+        surface = out.meshes["surface"].bounds
+        return float(centres[:, 0].max()), float(centres[:, 2].max()), float(surface[1, 2])
+
+    x_max, z_max, mesh_top = extent(filtered)
+    assert x_max <= 10.0 + 1.0 and z_max <= 6.0 + 1.0 and mesh_top <= 6.5, (x_max, z_max, mesh_top)
+    x_raw, z_raw, _ = extent(raw)
+    assert x_raw > 12.0 and z_raw > 8.0  # without the filter the building would take the crown
