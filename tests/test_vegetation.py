@@ -225,3 +225,45 @@ def test_a_tree_overhanging_a_roof_does_not_grow_the_building() -> None:
     assert x_max <= 10.0 + 1.0 and z_max <= 6.0 + 1.0 and mesh_top <= 6.5, (x_max, z_max, mesh_top)
     x_raw, z_raw, _ = extent(raw)
     assert x_raw > 12.0 and z_raw > 8.0  # without the filter the building would take the crown
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Simulated trees that touch buildings, leaf-on and leaf-off
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def test_touching_trees_stand_outside_and_hang_over_the_roof_edge() -> None:
+    from shapely.geometry import Point, Polygon
+
+    from lidarmap.sim.trees import OVERHANG, touching_spots
+
+    square = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
+    ell = np.array([[20.0, 0.0], [30.0, 0.0], [30.0, 4.0], [24.0, 4.0], [24.0, 9.0], [20.0, 9.0]])
+    spots = touching_spots(np.random.default_rng(3), [square, ell], [6.0, 9.0], [1, 2], 6)
+    assert len(spots) == 6 and {s.building_id for s in spots} == {1, 2}
+    for s in spots:
+        polygon = Polygon(square if s.building_id == 1 else ell)
+        trunk = Point(s.x, s.y)
+        assert not polygon.contains(trunk)
+        reach = s.crown_radius - polygon.exterior.distance(trunk)  # how far the crown reaches over the wall
+        assert OVERHANG[0] - 1e-9 <= reach <= OVERHANG[1] + 1e-9
+        assert s.crown_centre_z == (6.0 if s.building_id == 1 else 9.0)
+    assert touching_spots(np.random.default_rng(3), [square], [6.0], [1], 0) == []
+
+
+def test_city_with_touching_leaf_off_trees_keeps_the_rest_of_the_city() -> None:
+    from lidarmap.sim import SimParams
+    from lidarmap.sim.city import build_city
+    from lidarmap.sim.mesh import KIND, LEAF
+
+    plain = build_city(SimParams(seed=5, buildings=2, campaigns=0))
+    touched = build_city(SimParams(seed=5, buildings=2, campaigns=0, trees_touching=2))
+    bare = build_city(SimParams(seed=5, buildings=2, campaigns=0, trees_touching=2, leaf_off=True))
+    assert len(touched.trees) == len(plain.trees) + 2
+    assert touched.trees[:len(plain.trees)] == plain.trees  # the same city, plus the touching trees
+    assert [b.ring.tolist() for b in touched.buildings] == [b.ring.tolist() for b in plain.buildings]
+    def leaf_area(city) -> float:
+        tri = city.static.triangles[(city.static.kind == KIND["tree"]) & (city.static.behaviour == LEAF)]
+        return float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum() / 2)
+
+    assert leaf_area(bare) < leaf_area(touched) / 3  # bare crowns: a pulse meets far less
