@@ -283,6 +283,21 @@ def flatten_cloud(cloud: PointCloud, params: FlattenParams, seed: int = 0,
 STAGE_FUNCTIONS = {"densify": densify_cloud, "flatten": flatten_cloud}
 
 
+def densify_seeds(cloud: PointCloud, classes_in: np.ndarray) -> np.ndarray:
+    """The building points densification may multiply: all but those the model added (not class 6 in the input)
+    that are not the last return of a multi-return pulse -- a pulse that goes on after hitting them went through
+    something porous, a crown that slipped past the vegetation filter, and must not be multiplied. (Only the
+    input points: points added by an earlier stage carry the return fields of their source point.)"""
+    seeds = building_mask(cloud)
+    rn, nr = cloud.attrs.get("return_number"), cloud.attrs.get("number_of_returns")
+    if rn is None or nr is None:
+        return seeds
+    n_in = len(classes_in)
+    through = np.zeros(len(cloud), bool)
+    through[:n_in] = (np.asarray(classes_in) != BUILDING_CLASS) & (nr[:n_in] > 1) & (rn[:n_in] < nr[:n_in])
+    return seeds & ~through
+
+
 def process_building(bp: BuildingPoints, probability: np.ndarray, config: PipelineConfig) -> BuildingOutput:
     """Densify/flatten, voxelize and mesh one building whose points were segmented (``probability``, per point).
 
@@ -306,7 +321,8 @@ def process_building(bp: BuildingPoints, probability: np.ndarray, config: Pipeli
     for stage in run.stages:
         tick = time.perf_counter()
         params = config.densify if stage == "densify" else config.flatten
-        cloud, stage_stats = STAGE_FUNCTIONS[stage](cloud, params, seed)
+        selection = densify_seeds(cloud, classes_in) if stage == "densify" else None
+        cloud, stage_stats = STAGE_FUNCTIONS[stage](cloud, params, seed, selection)
         stage_stats.pop("densify_stats", None)
         stage_stats.pop("plane_list", None)
         stats.update(stage_stats)

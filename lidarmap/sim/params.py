@@ -19,6 +19,9 @@ class SimParams:
         campaigns (3): mobile campaigns (``mls_<i>.laz`` + ``trajectory_<i>.csv``); 0 writes none.
         streets (0): parallel streets lined with buildings; 0 = automatic (1 up to 10 buildings, else 2).
         trees_per_100m (7.0): street trees per 100 m of sidewalk (both sides counted separately).
+        trees_touching (0): trees against the walls of existing buildings, crowns over the roof edges
+            (:mod:`lidarmap.sim.trees`).
+        leaf_off (False): bare crowns (twigs: fewer, smaller scatterers) instead of leaf-on ones.
         parking_occupancy (0.5): probability that a parking slot holds a car, drawn anew for every acquisition.
     Aerial scan (als.laz)
         als_density (12.0): mean pulse (first-return) density over the scene in points/m², strip overlap included.
@@ -71,6 +74,7 @@ class SimParams:
         "campaigns": ">= 0",
         "streets": ">= 0",
         "trees_per_100m": ">= 0",
+        "trees_touching": ">= 0",
         "parking_occupancy": ">= 0",
         "als_density": ">= 0",
         "als_altitude": ">= 0",
@@ -107,6 +111,8 @@ class SimParams:
     campaigns: int = 3
     streets: int = 0
     trees_per_100m: float = 7.0
+    trees_touching: int = 0
+    leaf_off: bool = False
     parking_occupancy: float = 0.5
     als_density: float = 12.0
     als_altitude: float = 300.0
