@@ -280,14 +280,25 @@ def test_page_draws_in_headless_chromium_counts_buildings_and_picks_one(map_glb,
     print(f"screenshot: {shot}")
 
 
-def test_unknown_shapes_are_triangulated_with_holes() -> None:
+def test_polygons_with_holes_are_triangulated_facing_their_ring_normal() -> None:
     from lidarmap.export.gltf import triangulate_rings
 
     square = shapely.Polygon([(0, 0), (4, 0), (4, 3), (0, 3)], [[(1, 1), (2, 1), (2, 2), (1, 2)]])
     rings = [np.column_stack([np.asarray(r.coords)[:-1], np.full(len(r.coords) - 1, 7.0)])
              for r in [square.exterior, *square.interiors]]
     vertices, faces = triangulate_rings(rings)
-    assert abs(trimesh.Trimesh(vertices, faces, process=False).area - square.area) < 1e-9
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    assert abs(mesh.area - square.area) < 1e-9
+    assert (mesh.face_normals[:, 2] > 0.999).all()  # counter-clockwise from above: every triangle faces up
+    mesh = trimesh.Trimesh(*triangulate_rings([r[::-1] for r in rings]), process=False)
+    assert (mesh.face_normals[:, 2] < -0.999).all()  # and down for the reversed rings
+
+
+def test_a_footprint_id_attribute_does_not_replace_the_building_id() -> None:
+    from lidarmap.export.gltf import GlbBuilding, glb_bytes
+
+    glb = glb_bytes([GlbBuilding("B7", {}, {"id": 12, "height": 3.0})])
+    assert glb_building_ids(glb) == ["B7"]
 
 
 def test_a_run_without_buildings_still_gets_a_glb() -> None:

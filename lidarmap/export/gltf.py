@@ -136,7 +136,7 @@ def glb_bytes(buildings: Iterable[GlbBuilding], crs_wkt: str = "", title: str = 
                        matrix=trimesh.transformations.translation_matrix(origin))
     for b in buildings:
         scene.graph.update(frame_from=ORIGIN_NODE, frame_to=str(b.id),
-                           metadata=_json_safe({"id": str(b.id), **b.attributes}))
+                           metadata=_json_safe({**b.attributes, "id": str(b.id)}))  # the map id wins
         for kind in KINDS:
             if kind not in b.parts:
                 continue
@@ -147,7 +147,6 @@ def glb_bytes(buildings: Iterable[GlbBuilding], crs_wkt: str = "", title: str = 
                                    np.asarray(faces, np.int64), process=False, validate=False)
             if colours is not None:
                 mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=colours)
-            mesh.metadata = {"lidarmap_kind": kind}
             name = f"{b.id}/{kind}"
             scene.add_geometry(mesh, geom_name=name, node_name=name, parent_node_name=str(b.id))
     asset_extras = {"lidarmap": __version__, "title": title, "origin": [float(x) for x in origin],
@@ -194,8 +193,10 @@ def aerial_glb_building(b: AerialBuilding, record: dict[str, Any] | None = None)
     for k, name in enumerate(("roof", "wall", "ground")):
         sub = faces[kind == k]
         if len(sub):
-            used, inverse = np.unique(sub, return_inverse=True)
-            parts[name] = (vertices[used], inverse.reshape(-1, 3), None)
+            used = np.zeros(len(vertices), dtype=bool)
+            used[sub] = True
+            new_index = np.cumsum(used) - 1  # a linear-time compaction (np.unique sorts)
+            parts[name] = (vertices[used], new_index[sub], None)
     attributes = {**b.attributes, "ground_z": b.ground_z, "height": b.height,
                   "roof_z_max": float(vertices[:, 2].max()) if len(vertices) else None}
     if record:
@@ -210,13 +211,17 @@ _SEMANTIC_KIND = {"RoofSurface": "roof", "WallSurface": "wall", "GroundSurface":
                   "Door": "door"}
 
 
-def _plane_axes(ring: np.ndarray) -> np.ndarray:
-    """Two orthonormal in-plane axes (3, 2) of a ring, from its Newell normal."""
+def _newell_normal(ring: np.ndarray) -> np.ndarray:
+    """Unit normal of a ring (counter-clockwise seen from where it points)."""
     nxt = np.roll(ring, -1, axis=0)
     normal = np.array([np.sum((ring[:, 1] - nxt[:, 1]) * (ring[:, 2] + nxt[:, 2])),
                        np.sum((ring[:, 2] - nxt[:, 2]) * (ring[:, 0] + nxt[:, 0])),
                        np.sum((ring[:, 0] - nxt[:, 0]) * (ring[:, 1] + nxt[:, 1]))])
-    normal /= max(np.linalg.norm(normal), 1e-12)
+    return normal / max(np.linalg.norm(normal), 1e-12)
+
+
+def _plane_axes(normal: np.ndarray) -> np.ndarray:
+    """Two orthonormal axes (3, 2) of the plane with this unit normal."""
     helper = np.array([0.0, 0.0, 1.0]) if abs(normal[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
     a = np.cross(helper, normal)
     a /= np.linalg.norm(a)
@@ -225,7 +230,7 @@ def _plane_axes(ring: np.ndarray) -> np.ndarray:
 
 def triangulate_rings(rings: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """A planar 3D polygon with holes (exterior first, rings without the closing vertex) as triangles (earcut in
-    the polygon's plane): vertices (V, 3) and faces (F, 3)."""
+    the polygon's plane, wound like the exterior ring): vertices (V, 3) and faces (F, 3)."""
     import mapbox_earcut
 
     rings = [np.asarray(r, dtype=np.float64) for r in rings if len(r) >= 3]
@@ -233,8 +238,12 @@ def triangulate_rings(rings: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
     vertices = np.vstack(rings)
     ends = np.cumsum([len(r) for r in rings]).astype(np.uint32)
-    flat = (vertices - vertices[0]) @ _plane_axes(rings[0])
+    normal = _newell_normal(rings[0])
+    flat = (vertices - vertices[0]) @ _plane_axes(normal)
     faces = mapbox_earcut.triangulate_float64(flat, ends).astype(np.int64).reshape(-1, 3)
+    tri = vertices[faces]
+    backwards = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]) @ normal < 0
+    faces[backwards] = faces[backwards][:, ::-1]  # wound like the exterior ring: front faces look out
     return vertices, faces
 
 
