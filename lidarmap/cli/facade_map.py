@@ -93,9 +93,9 @@ def update_command(
                                               dir_okay=False),
     aerial: Optional[Path] = typer.Option(None, "--aerial", help="Aerial scan (LAS/LAZ): adds roof planes.",
                                           dir_okay=False),
-    footprints: Optional[Path] = typer.Option(None, "--footprints", "-f", help="Building footprints (GeoJSON); "
-                                              "optional with --aerial (default: the map's buildings).",
-                                              dir_okay=False),
+    footprints: Optional[Path] = typer.Option(None, "--footprints", "-f", help="Building footprints (GeoJSON; "
+                                              "GeoPackage/Shapefile/FlatGeobuf with the gis extra); optional with "
+                                              "--aerial (default: the map's buildings).", dir_okay=False),
     id_field: Optional[str] = IdFieldOption,
     crs: Optional[str] = CrsOption,
     workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes for the buildings of a mobile "
