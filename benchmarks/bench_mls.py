@@ -174,8 +174,8 @@ def bench_modes(tmp: Path, seed: int, buildings: int, campaigns: int) -> list[st
         rows.append(f"| {name} | {' / '.join(f'{v:.3f}' for v in f1s)} | {ratio:.3f} | {len(found)} "
                     f"({'all' if not missing else 'missing ' + ','.join(missing)}) | {seconds:.1f} |")
     errors = path_errors(truth, with_origins)
-    head = [f"Scene: seed {seed}, {buildings} buildings, {campaigns} campaigns, PLY; window F1 after each campaign "
-            "(map so far, visibility over the campaigns so far).", "",
+    head = [(f"Scene: seed {seed}, {buildings} buildings, {campaigns} campaigns, PLY; window F1 after each campaign "
+             "(map so far, visibility over the campaigns so far)."), "",
             "| sensor positions | window F1 per campaign | F1 / reference (last) | buildings with façades | update s |",
             "|---|---|---|---|---|"]
     return head + rows + ["", "Estimated path against the true sensor positions (per point, metres):", "",
@@ -198,8 +198,8 @@ def bench_big(tmp: Path, seed: int, points: int) -> list[str]:
     update = apply_campaign(tmp / "big.lmap", campaign_inputs(ply, None, None, scene / "footprints.geojson", None,
                                                               None), stage_params(None), 0)
     cpu = time.process_time() - cpu
-    return [f"| {n:,}-point PLY campaign (origins), {params.buildings} buildings | {update.seconds:.1f} s wall, "
-            f"{cpu:.1f} s CPU (simulation {sim_s:.0f} s) | {update.counts['windows']} windows |"]
+    return [(f"| {n:,}-point PLY campaign (origins), {params.buildings} buildings | {update.seconds:.1f} s wall, "
+             f"{cpu:.1f} s CPU (simulation {sim_s:.0f} s) | {update.counts['windows']} windows |")]
 
 
 def main() -> None:
@@ -216,8 +216,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_mls_") as tmp_name:
         tmp = args.work or Path(tmp_name)
         tmp.mkdir(parents=True, exist_ok=True)
-        lines = [f"## MLS inputs: PLY/XYZ, sensor positions, no footprints ({platform.node()}, "
-                 f"{os.cpu_count()} cores, {time.strftime('%Y-%m-%d')})", "",
+        lines = [(f"## MLS inputs: PLY/XYZ, sensor positions, no footprints ({platform.node()}, "
+                  f"{os.cpu_count()} cores, {time.strftime('%Y-%m-%d')})"), "",
                  "`python benchmarks/bench_mls.py` (issue 16).", "",
                  *([] if args.skip_read else ["| reading | reader | speed |", "|---|---|---|",
                                               *bench_read(tmp, args.read_points), ""])]
