@@ -83,7 +83,7 @@ def update_map(map_path: str | Path, points: str | Path | None = None, trajector
 
 def open_map(map_path: str | Path, as_of: int | None = None) -> BuildingMap:
     """The stored map (as it was right after campaign ``as_of`` when given)."""
-    with MapStore.open(map_path) as store:
+    with MapStore.open(map_path, readonly=True) as store:
         return store.load(as_of=as_of)
 
 

@@ -42,7 +42,8 @@ def epoch_line(entry: dict) -> str:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out-dir", type=Path, default=MODELS_DIR, help="where the model files go")
-    parser.add_argument("--data", type=Path, default=recipe.DATA_DIR, help="the shared real data folder")
+    parser.add_argument("--data", type=Path, default=None, help="the shared real data folder (default: "
+                        "$LIDARMAP_DATA, else ../shared/data from the working directory)")
     parser.add_argument("--config", type=Path, default=None, help="TOML overrides (experiments only)")
     parser.add_argument("--only", choices=("pointnet2", "baseline"), default=None, help="train one model only")
     args = parser.parse_args(argv)

@@ -298,3 +298,46 @@ def test_commands_on_a_file_that_is_not_a_map(sim) -> None:
     for command in (["show"], ["history"], ["export", "-o", "x.json"], ["render", "-o", "renders"]):
         one_line_error(*run("map", command[0], sim.footprints, *command[1:])[::2], "footprints.geojson",
                        "not a lidarmap map (not an SQLite database)")
+
+
+# ---------------------------------------------------------------- --json: one object on stdout, nothing else
+def test_update_show_and_history_as_json(sim, map1, map_copy) -> None:
+    code, out, err = run("-v", "map", "update", map_copy, *campaign_args(sim, 2), "--json")
+    assert code == 0, err
+    update = json.loads(out)  # the whole of stdout is one JSON object
+    assert out.count("\n") == 1
+    assert f"INFO: {map_copy}: campaign 2 (mls_2.laz + trajectory_2.csv) committed" in err  # -v: notes on stderr
+    with MapStore.open(map_copy) as store:
+        stored = store.load()
+        history = store.history()
+    assert update["campaign"]["campaign_id"] == 2 and update["campaign"]["kind"] == "mobile"
+    assert update["counts"]["buildings"] == len(stored.buildings) == count_map(stored)["buildings"]
+    assert update["counts"]["windows"] == count_map(stored)["windows"]
+    assert update["changes"] == history[-1][1]
+
+    code, out, err = run("map", "history", map_copy, "--json")
+    assert code == 0, err
+    campaigns = json.loads(out)["campaigns"]
+    assert [(c["campaign_id"], c["kind"]) for c in campaigns] == [(1, "mobile"), (2, "mobile")]
+    assert campaigns[1]["changes"] == update["changes"]
+
+    code, out, err = run("map", "show", map1[0], "--json")
+    assert code == 0, err
+    shown = json.loads(out)
+    with MapStore.open(map1[0]) as store:
+        first = store.load()
+    assert shown["state"] == "as of campaign 1"
+    assert [b["id"] for b in shown["buildings"]] == list(first.buildings)
+    facades = [f for b in shown["buildings"] for f in b["facades"]]
+    assert len(facades) == count_map(first)["facades"]
+    kinds = [e["kind"] for f in facades for e in f["elements"]]
+    assert kinds.count("window") == count_map(first)["windows"]
+
+
+def test_quiet_prints_nothing_but_errors(map1) -> None:
+    code, out, err = run("-q", "map", "show", map1[0])
+    assert code == 0 and out == "" and err == ""
+    code, out, err = run("-q", "map", "show", map1[0], "--building", "nope")
+    assert code == 2 and "no building 'nope' in this map" in err  # errors still show
+    code, out, err = run("map", "show", map1[0])
+    assert code == 0 and "façades" in out

@@ -11,7 +11,10 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+import glob
 import logging
+import shutil
+import sqlite3
 import tempfile
 import time
 from collections.abc import Callable
@@ -29,7 +32,7 @@ from lidarmap.io.footprints import check_overlap, read_footprints
 from lidarmap.io.points import read_points
 from lidarmap.map import refine
 from lidarmap.map.model import BuildingMap, Campaign
-from lidarmap.map.store import MapStore, campaign_fingerprint, writer_lock
+from lidarmap.map.store import MapStore, campaign_fingerprint, damaged_map_error, writer_lock
 from lidarmap.map.mls import (
     DERIVED,
     discover_campaign,
@@ -157,7 +160,7 @@ def _read_points(inputs: CampaignInputs, update: Any, sensors: Any = None) -> _P
     """Aerial scans are read whole; of a mobile campaign only the header here (the update streams it)."""
     if inputs.kind == "mobile":
         mobile = mobile_campaign(inputs.points, inputs.trajectory, inputs.crs, inputs.columns, update.chunk_points,
-                                 sensors)
+                                 sensors, (update.trajectory_warn_gap, update.trajectory_max_gap))
         stream = mobile.source
         return _Points(stream.crs, stream.n_points, (*stream.lo, *stream.hi), stream=stream, mobile=mobile)
     cloud = read_points(inputs.points, crs=inputs.crs, columns=inputs.columns)
@@ -184,11 +187,23 @@ def _new_map(stored: BuildingMap, points: _Points, footprints: Footprints, input
     facade_params, refine_params = params
     if inputs.kind == "aerial":
         return _Fused(refine.add_aerial(stored, points.cloud, footprints, refine_params, campaign_id, seed), {})
-    with tempfile.TemporaryDirectory(dir=map_path.resolve().parent, prefix=f".{map_path.name}.spool-") as spool:
+    with tempfile.TemporaryDirectory(dir=map_path.resolve().parent, prefix=_spool_prefix(map_path)) as spool:
         fused = fuse_campaign(stored, points.stream, points.mobile.trajectory, footprints, facade_params,
                               refine_params, campaign_id, seed, update=update, spool_dir=Path(spool) / "points",
                               progress=progress, noise_factor=points.mobile.noise_factor)
     return _Fused(fused.map, fused.failed)
+
+
+def _spool_prefix(map_path: Path) -> str:
+    """The spool folder beside the map during a mobile update: ``.<map name>.spool-XXXX``."""
+    return f".{map_path.name}.spool-"
+
+
+def _remove_stale_spools(map_path: Path) -> None:
+    """Spools of earlier updates that were killed (``kill -9`` skips the cleanup): the caller holds the map's writer
+    lock, so no other update of this map is running and every spool of it is stale."""
+    for stale in map_path.resolve().parent.glob(f"{glob.escape(_spool_prefix(map_path))}*"):
+        shutil.rmtree(stale, ignore_errors=True)
 
 
 @dataclasses.dataclass
@@ -233,6 +248,7 @@ def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, An
     update = update or UpdateParams()
     started = time.perf_counter()
     with writer_lock(map_path):
+        _remove_stale_spools(map_path)
         store = MapStore.open(map_path) if map_path.exists() else None
         try:
             step("fingerprint")
@@ -261,6 +277,11 @@ def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, An
                 store = MapStore.create(map_path, crs.to_wkt())
             changes = store.commit(new_map, campaign)
             log.info("%s: campaign %d (%s) committed: %s", map_path, campaign_id, inputs.source, counts)
+        except sqlite3.DatabaseError as exc:
+            damaged = damaged_map_error(exc, map_path)
+            if damaged is None:
+                raise
+            raise damaged from None
         finally:
             if store is not None:
                 store.close()

@@ -114,8 +114,10 @@ def _sample(header: PointsHeader, n_points: int, chunk_points: int, crs: Any, co
 
 
 def mobile_campaign(points: Path, trajectory: Path | None, crs: Any, columns: str | None, chunk_points: int,
-                    params: SensorParams | None = None) -> MobileCampaign:
-    """The campaign in ``points`` with its sensor positions (module doc); errors name the file."""
+                    params: SensorParams | None = None, trajectory_gaps: tuple[float, float] | None = None
+                    ) -> MobileCampaign:
+    """The campaign in ``points`` with its sensor positions (module doc); errors name the file.
+    ``trajectory_gaps``: (warn, refuse) seconds of a hole in the trajectory file (:func:`read_trajectory`)."""
     params = params or SensorParams()
     header = read_points_header(points, crs, columns)
     if header.n_points == 0:
@@ -132,7 +134,7 @@ def mobile_campaign(points: Path, trajectory: Path | None, crs: Any, columns: st
         if not header.has_gps_time:
             raise InputError("the points have no GPS time: a trajectory file gives sensor positions only by GPS "
                              "time (leave --trajectory out to use the points' origins or an estimated path)", points)
-        return MobileCampaign(source(), read_trajectory(trajectory), MODES[0], 1.0)
+        return MobileCampaign(source(), read_trajectory(trajectory, *(trajectory_gaps or ())), MODES[0], 1.0)
     if header.has_origins:
         track = _origins_trajectory(header, chunk_points, crs, columns, params)
         return MobileCampaign(source(lambda first, chunk: first + np.arange(len(chunk), dtype=np.float64)),

@@ -103,6 +103,9 @@ class UpdateParams:
             cell run as one task sharing one context (the union of their boxes): neighbours' contexts overlap
             almost entirely (each reaches the scanner's range), so a group reads and indexes its points once and
             ships them once. 0 = one building per task. Memory per task: one group's context.
+        trajectory_warn_gap (1.0): a hole (s) between trajectory rows longer than this is interpolated with a
+            warning.
+        trajectory_max_gap (30.0): a trajectory with a longer hole (s) is refused (positions would be guesses).
     """
 
     section = "update"
@@ -111,6 +114,8 @@ class UpdateParams:
         "chunk_points": ">= 0",
         "cell": ">= 0",
         "group_size": ">= 0",
+        "trajectory_warn_gap": "> 0",
+        "trajectory_max_gap": "> 0",
     }
 
     workers: int = 1
@@ -118,6 +123,8 @@ class UpdateParams:
     chunk_points: int = 2_000_000
     cell: float = 25.0
     group_size: float = 60.0
+    trajectory_warn_gap: float = 1.0
+    trajectory_max_gap: float = 30.0
 
     def __post_init__(self) -> None:
         check_params(self)
@@ -261,8 +268,7 @@ def building_rng(seed: int, building_id: str) -> tuple[int, np.random.Generator]
     """A building's seed and generator: the same whatever else is in the run and on every machine (from
     (seed, building id), from :func:`lidarmap.executor.building_seed_sequence`)."""
     sequence = building_seed_sequence(seed, building_id)
-    # sub-steps seed scikit-learn's GMM with seed * 31 + k, which must stay below 2**32
-    return int(sequence.generate_state(1)[0] >> 5), np.random.default_rng(sequence)
+    return int(sequence.generate_state(1)[0]), np.random.default_rng(sequence)
 
 
 def _grow(box: tuple[float, float, float, float], by: float) -> tuple[float, float, float, float]:
