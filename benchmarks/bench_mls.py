@@ -145,10 +145,10 @@ def path_errors(truth, files: dict[int, Path]) -> list[str]:
     return rows
 
 
-def bench_modes(tmp: Path, seed: int, buildings: int, campaigns: int) -> list[str]:
-    scene = tmp / "scene"
+def bench_modes(tmp: Path, seed: int, buildings: int, campaigns: int, family: str = "standard") -> list[str]:
+    scene = tmp / f"scene_{family}"
     simulate(scene, SimParams(seed=seed, buildings=buildings, campaigns=campaigns, mls_format="ply",
-                              mls_origins=True))
+                              mls_origins=True, family=family))
     truth = load_truth(scene)
     bare = {}
     for c in truth.campaigns:  # the same campaign without origins (path from cloud + GPS time)
@@ -174,7 +174,8 @@ def bench_modes(tmp: Path, seed: int, buildings: int, campaigns: int) -> list[st
         rows.append(f"| {name} | {' / '.join(f'{v:.3f}' for v in f1s)} | {ratio:.3f} | {len(found)} "
                     f"({'all' if not missing else 'missing ' + ','.join(missing)}) | {seconds:.1f} |")
     errors = path_errors(truth, with_origins)
-    head = [(f"Scene: seed {seed}, {buildings} buildings, {campaigns} campaigns, PLY; window F1 after each campaign "
+    head = [(f"Scene: {family} family, seed {seed}, {buildings} buildings, {campaigns} campaigns, PLY; window F1 "
+             "after each campaign "
              "(map so far, visibility over the campaigns so far)."), "",
             "| sensor positions | window F1 per campaign | F1 / reference (last) | buildings with façades | update s |",
             "|---|---|---|---|---|"]
@@ -210,6 +211,7 @@ def main() -> None:
     ap.add_argument("--campaigns", type=int, default=2)
     ap.add_argument("--big", action="store_true", help="also the ~5 M-point campaign update")
     ap.add_argument("--skip-modes", action="store_true")
+    ap.add_argument("--family", default="standard", choices=["standard", "hard"])
     ap.add_argument("--skip-read", action="store_true")
     ap.add_argument("--work", type=Path, help="keep the simulated data here (reused by the next run)")
     args = ap.parse_args()
@@ -223,7 +225,8 @@ def main() -> None:
                                               *bench_read(tmp, args.read_points), ""])]
         print("\n".join(lines), flush=True)
         if not args.skip_modes:
-            print("\n".join(bench_modes(tmp, args.seed, args.buildings, args.campaigns)) + "\n", flush=True)
+            print("\n".join(bench_modes(tmp, args.seed, args.buildings, args.campaigns, args.family)) + "\n",
+                  flush=True)
         if args.big:
             print("| update | time | result |\n|---|---|---|\n" + "\n".join(bench_big(tmp, args.seed, 5_000_000)),
                   flush=True)
