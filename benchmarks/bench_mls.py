@@ -29,22 +29,28 @@ from pathlib import Path
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "2")
 
-import numpy as np  # noqa: E402
-from shapely.geometry import Polygon  # noqa: E402
+import numpy as np
+from shapely.geometry import Polygon
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from lidarmap.cli.facade_map import stage_params  # noqa: E402
-from lidarmap.facade.eval import evaluate_facades  # noqa: E402
-from lidarmap.facade.sensors import SensorParams, estimate_path, path_times, path_trajectory, timed_path  # noqa: E402
-from lidarmap.io.ply import iter_ply, read_ply_header  # noqa: E402
-from lidarmap.io.points import read_points  # noqa: E402
-from lidarmap.io.trajectory import read_trajectory  # noqa: E402
-from lidarmap.map.apply import apply_campaign, campaign_inputs  # noqa: E402
-from lidarmap.map.store import MapStore  # noqa: E402
-from lidarmap.sim import SimParams, load_truth, simulate  # noqa: E402
-from lidarmap.sim.plyout import write_points_ply  # noqa: E402
+from lidarmap.cli.facade_map import stage_params
+from lidarmap.facade.eval import evaluate_facades
+from lidarmap.facade.sensors import (
+    SensorParams,
+    estimate_path,
+    path_times,
+    path_trajectory,
+    timed_path,
+)
+from lidarmap.io.ply import iter_ply, read_ply_header
+from lidarmap.io.points import read_points
+from lidarmap.io.trajectory import read_trajectory
+from lidarmap.map.apply import apply_campaign, campaign_inputs
+from lidarmap.map.store import MapStore
+from lidarmap.sim import SimParams, load_truth, simulate
+from lidarmap.sim.plyout import write_points_ply
 
 
 def synthetic_columns(n: int, seed: int = 0) -> dict[str, np.ndarray]:
@@ -81,7 +87,7 @@ def bench_read(tmp: Path, n: int) -> list[str]:
     size = binary.stat().st_size / 2**20
     return [f"| binary PLY, {n:,} points ({size:.0f} MiB, 9 properties) | lidarmap.io.ply | {ours} |",
             f"| same file, first {n // 10:,} points | naive: struct.unpack per vertex | {naive} |",
-            f"| ASCII PLY, {n // 10:,} points | lidarmap.io.ply (numpy.loadtxt per block) | {ascii_rate} |"]
+            f"| ASCII PLY, {n // 10:,} points | lidarmap.io.ply (numpy.fromstring per block) | {ascii_rate} |"]
 
 
 def timed(read) -> str:
@@ -139,10 +145,10 @@ def path_errors(truth, files: dict[int, Path]) -> list[str]:
     return rows
 
 
-def bench_modes(tmp: Path, seed: int, buildings: int, campaigns: int) -> list[str]:
-    scene = tmp / "scene"
+def bench_modes(tmp: Path, seed: int, buildings: int, campaigns: int, family: str = "standard") -> list[str]:
+    scene = tmp / f"scene_{family}"
     simulate(scene, SimParams(seed=seed, buildings=buildings, campaigns=campaigns, mls_format="ply",
-                              mls_origins=True))
+                              mls_origins=True, family=family))
     truth = load_truth(scene)
     bare = {}
     for c in truth.campaigns:  # the same campaign without origins (path from cloud + GPS time)
@@ -168,8 +174,9 @@ def bench_modes(tmp: Path, seed: int, buildings: int, campaigns: int) -> list[st
         rows.append(f"| {name} | {' / '.join(f'{v:.3f}' for v in f1s)} | {ratio:.3f} | {len(found)} "
                     f"({'all' if not missing else 'missing ' + ','.join(missing)}) | {seconds:.1f} |")
     errors = path_errors(truth, with_origins)
-    head = [f"Scene: seed {seed}, {buildings} buildings, {campaigns} campaigns, PLY; window F1 after each campaign "
-            "(map so far, visibility over the campaigns so far).", "",
+    head = [(f"Scene: {family} family, seed {seed}, {buildings} buildings, {campaigns} campaigns, PLY; window F1 "
+             "after each campaign "
+             "(map so far, visibility over the campaigns so far)."), "",
             "| sensor positions | window F1 per campaign | F1 / reference (last) | buildings with façades | update s |",
             "|---|---|---|---|---|"]
     return head + rows + ["", "Estimated path against the true sensor positions (per point, metres):", "",
@@ -182,13 +189,18 @@ def bench_big(tmp: Path, seed: int, points: int) -> list[str]:
     params = SimParams(seed=seed, buildings=8, campaigns=1, mls_format="ply", mls_origins=True,
                        mls_rate=200.0, mls_angular_step=0.2)
     clock = time.perf_counter()
-    result = simulate(scene, params)
+    if not (scene / "mls_1.ply").exists():  # a --work folder keeps the simulated campaign between runs
+        simulate(scene, params)
     sim_s = time.perf_counter() - clock
-    n = result.mls_points[0]
-    update = apply_campaign(tmp / "big.lmap", campaign_inputs(result.mls[0], None, None, result.footprints, None,
+    ply = scene / "mls_1.ply"
+    n = read_ply_header(ply).point_count
+    (tmp / "big.lmap").unlink(missing_ok=True)
+    cpu = time.process_time()
+    update = apply_campaign(tmp / "big.lmap", campaign_inputs(ply, None, None, scene / "footprints.geojson", None,
                                                               None), stage_params(None), 0)
-    return [f"| {n:,}-point PLY campaign (origins), {params.buildings} buildings | {update.seconds:.1f} s "
-            f"(simulation {sim_s:.0f} s) | {update.counts['windows']} windows |"]
+    cpu = time.process_time() - cpu
+    return [(f"| {n:,}-point PLY campaign (origins), {params.buildings} buildings | {update.seconds:.1f} s wall, "
+             f"{cpu:.1f} s CPU (simulation {sim_s:.0f} s) | {update.counts['windows']} windows |")]
 
 
 def main() -> None:
@@ -199,16 +211,22 @@ def main() -> None:
     ap.add_argument("--campaigns", type=int, default=2)
     ap.add_argument("--big", action="store_true", help="also the ~5 M-point campaign update")
     ap.add_argument("--skip-modes", action="store_true")
+    ap.add_argument("--family", default="standard", choices=["standard", "hard"])
+    ap.add_argument("--skip-read", action="store_true")
+    ap.add_argument("--work", type=Path, help="keep the simulated data here (reused by the next run)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench_mls_") as tmp_name:
-        tmp = Path(tmp_name)
-        lines = [f"## MLS inputs: PLY/XYZ, sensor positions, no footprints ({platform.node()}, "
-                 f"{os.cpu_count()} cores, {time.strftime('%Y-%m-%d')})", "",
+        tmp = args.work or Path(tmp_name)
+        tmp.mkdir(parents=True, exist_ok=True)
+        lines = [(f"## MLS inputs: PLY/XYZ, sensor positions, no footprints ({platform.node()}, "
+                  f"{os.cpu_count()} cores, {time.strftime('%Y-%m-%d')})"), "",
                  "`python benchmarks/bench_mls.py` (issue 16).", "",
-                 "| reading | reader | speed |", "|---|---|---|", *bench_read(tmp, args.read_points), ""]
+                 *([] if args.skip_read else ["| reading | reader | speed |", "|---|---|---|",
+                                              *bench_read(tmp, args.read_points), ""])]
         print("\n".join(lines), flush=True)
         if not args.skip_modes:
-            print("\n".join(bench_modes(tmp, args.seed, args.buildings, args.campaigns)) + "\n", flush=True)
+            print("\n".join(bench_modes(tmp, args.seed, args.buildings, args.campaigns, args.family)) + "\n",
+                  flush=True)
         if args.big:
             print("| update | time | result |\n|---|---|---|\n" + "\n".join(bench_big(tmp, args.seed, 5_000_000)),
                   flush=True)
