@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 from typing import Any, Optional
 
@@ -290,7 +291,7 @@ def _print_scores(report: dict[str, Any]) -> None:
 
 def _share(value: float) -> str:
     """A share with 4 decimals; '-' when there was nothing to share (nan)."""
-    return "-" if value != value else f"{value:.4f}"
+    return "-" if math.isnan(value) else f"{value:.4f}"
 
 
 def _confusion(matrix: list[list[int]]) -> str:
