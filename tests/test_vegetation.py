@@ -268,3 +268,16 @@ def test_city_with_touching_leaf_off_trees_keeps_the_rest_of_the_city() -> None:
         return float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum() / 2)
 
     assert leaf_area(bare) < leaf_area(touched) / 3  # bare crowns: a pulse meets far less
+
+
+def test_recipe_labels_tree_like_training_points_as_vegetation() -> None:
+    rng = np.random.default_rng(2)
+    ground = ground_grid(30.0, 0.5)
+    tree = crown(rng, (20.0, 20.0, 6.0), 2.0, 200)
+    xyz = np.vstack([ground, tree])
+    classes = np.repeat([2, 1], [len(ground), len(tree)]).astype(np.uint8)
+    cloud = PointCloud(xyz, {"classification": classes, "number_of_returns": np.full(len(xyz), 2, np.uint8)})
+    labelled = recipe.label_vegetation(cloud)
+    expected = np.repeat([2, recipe.VEGETATION_LABEL], [len(ground), len(tree)])
+    np.testing.assert_array_equal(labelled.attrs["classification"], expected)
+    np.testing.assert_array_equal(cloud.attrs["classification"], classes)  # the input is left alone
