@@ -192,7 +192,7 @@ def test_run_refuses_bad_options_in_one_line(city: Path, tmp_path: Path, args: l
 def test_run_refuses_a_foreign_output_folder(city: Path, tmp_path: Path) -> None:
     (tmp_path / "mine.txt").write_text("precious")
     result = run_cli("run", str(city / "als.laz"), "-f", str(city / "footprints.geojson"), "-o", str(tmp_path))
-    assert result.returncode == 2 and "holds no earlier run" in result.stderr
+    assert result.returncode == 2 and "not written by lidarmap" in result.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine.txt"]
 
 
