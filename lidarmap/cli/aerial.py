@@ -21,8 +21,11 @@ from lidarmap.cli.common import (
     CrsOption,
     FootprintsOption,
     IdFieldOption,
+    JsonOption,
     SeedOption,
+    echo_json,
     handle_errors,
+    json_mode,
     params_from,
     progress,
     table_console,
@@ -350,14 +353,20 @@ def run_command(
     crs: Optional[str] = CrsOption,
     seed: Optional[int] = SeedOption,
     config: Optional[Path] = ConfigOption,
+    json_output: bool = JsonOption,
 ) -> None:
     """The whole aerial pipeline: prep -> segment -> densify/flatten -> voxelize -> mesh, per building, into
-    OUT/buildings/<id>/ (points.laz, voxels.npz/.vox, mesh.ply/.obj), OUT/summary.json, OUT/buildings.city.json."""
+    OUT/buildings/<id>/ (points.laz, voxels.npz/.vox, mesh.ply/.obj), OUT/summary.json, OUT/buildings.city.json,
+    OUT/buildings.gpkg (every footprint with its status, for a GIS)."""
+    json_mode(json_output)
     pipeline_config = _pipeline_config(config, stages=stages, method=method, model=model, union=union,
                                        voxel_size=voxel_size, mesh=mesh, workers=workers, scheduler=scheduler,
                                        id_field=id_field, seed=seed)
     result = run_with_progress(tiles, footprints, out_dir, pipeline_config, crs)
-    print_run_summary(result)
+    if json_output:
+        echo_json(run_json(result))
+    else:
+        print_run_summary(result)
     if not result.records:
         raise InputError("no building could be reconstructed (see the failures above)", footprints)
 
@@ -365,12 +374,14 @@ def run_command(
 def _pipeline_config(config: Path | None, *, stages: str | None, method: str | None, model: Path | None,
                      union: bool | None, voxel_size: float | None, mesh: str | None, workers: int | None,
                      scheduler: str | None, id_field: str | None, seed: int | None) -> Any:
+    from lidarmap.aerial.coverage import CoverageParams
     from lidarmap.aerial.densify import DensifyParams
     from lidarmap.aerial.flatten import FlattenParams
     from lidarmap.aerial.mesh import MeshParams
     from lidarmap.aerial.pipeline import PipelineConfig, RunParams, check_stage_names
     from lidarmap.aerial.prep import PrepParams
     from lidarmap.aerial.voxel import VoxelParams
+    from lidarmap.export.planar import PlanarParams
     from lidarmap.segment.predict import PredictParams
 
     # params_from refuses tables no command knows (lidarmap.config.KNOWN_TABLES)
@@ -384,6 +395,8 @@ def _pipeline_config(config: Path | None, *, stages: str | None, method: str | N
         flatten=params_from(FlattenParams, config),
         voxel=params_from(VoxelParams, config, size=voxel_size),
         mesh=params_from(MeshParams, config),
+        coverage=params_from(CoverageParams, config),
+        lod22=params_from(PlanarParams, config),
     )
 
 
@@ -412,16 +425,29 @@ def run_with_progress(tiles: list[Path], footprints: Path, out_dir: Path, pipeli
         return run_pipeline(tiles, fps, out_dir, pipeline_config, crs=crs, report=report)
 
 
+def run_json(result: Any) -> dict[str, Any]:
+    """``run --json``: what the run did and where its outputs are (per building its building.json record)."""
+    out = result.out_dir
+    return {"out_dir": str(out), "processed": result.processed, "skipped": result.skipped, "failed": result.failed,
+            "dropped": result.dropped, "seconds": round(result.seconds, 3),
+            "outputs": {"summary": str(out / "summary.json"), "cityjson": str(out / "buildings.city.json"),
+                        "geopackage": str(out / "buildings.gpkg")},
+            "buildings": [{k: v for k, v in r.items() if k != "fingerprint"} for r in result.records]}
+
+
 def print_run_summary(result: Any) -> None:
     """The per-building table, failures, and where the outputs are."""
     rows = []
     for r in result.records:
         state = "skipped (done)" if r["id"] in result.skipped else "done"
+        coverage = r.get("coverage")
+        covered = "" if coverage is None else f"{coverage:.2f}" + (" partial" if r.get("status") == "partial" else "")
         rows.append([r["id"], r["points"], r["building_points"], r.get("new_points", 0), r.get("planes", 0),
                      r["voxels"], r["mesh_faces"][r["mesh"]], "yes" if r["watertight"][r["mesh"]] else "no",
-                     r["seconds"]["total"], state])
+                     covered, r["seconds"]["total"], state])
     _table(f"lidarmap run -> {result.out_dir}", ["building", "points", "building pts", "new pts", "planes",
-                                                  "voxels", "mesh triangles", "watertight", "s", ""], rows)
+                                                  "voxels", "mesh triangles", "watertight", "coverage", "s", ""],
+           rows)
     out = table_console()
     for bid, reason in result.failed.items():
         out.print(f"[yellow]failed[/] {bid}: {escape(reason)}", highlight=False)

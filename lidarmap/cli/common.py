@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import errno
 import functools
+import json
+import logging
 import os
 import sys
 from collections.abc import Callable, Iterable, Iterator
@@ -32,8 +34,64 @@ PIPE_WIDTH = 160
 
 
 def table_console() -> Console:
-    """The shared console in a terminal; a wide one when the output goes to a pipe or a file."""
+    """The shared console in a terminal; a wide one when the output goes to a pipe or a file; a silent one under
+    ``--quiet`` or ``--json`` (stdout then holds the JSON object only)."""
+    if console.quiet:
+        return console
     return console if console.is_terminal else Console(width=PIPE_WIDTH)
+
+
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is at the time (tests and embedding programs swap it)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.stream = sys.stderr
+        super().emit(record)
+
+
+#: Set by the global options (``--quiet``) for this invocation.
+_state = {"quiet": False}
+
+
+def configure_logging(verbose: int = 0, quiet: bool = False) -> None:
+    """Log level of the ``lidarmap`` loggers from ``-v`` (info), ``-vv`` (debug) or ``--quiet`` (errors only; also
+    no tables or progress bars), printed on stderr as ``level: message``."""
+    level = logging.ERROR if quiet else {0: logging.WARNING, 1: logging.INFO}.get(verbose, logging.DEBUG)
+    logger = logging.getLogger("lidarmap")
+    logger.setLevel(level)
+    for handler in [h for h in logger.handlers if getattr(h, "lidarmap_cli", False)]:
+        logger.removeHandler(handler)
+    handler = _StderrHandler()
+    handler.lidarmap_cli = True  # type: ignore[attr-defined]
+    handler.setFormatter(logging.Formatter("%(levelname)s: %(message)s" if verbose < 2
+                                           else "%(levelname)s %(name)s: %(message)s"))
+    logger.addHandler(handler)
+    console.quiet = quiet
+    _state["quiet"] = quiet
+
+
+#: ``--json`` option of the commands whose result a script reads.
+JsonOption = typer.Option(False, "--json", help="Print the result as one JSON object on stdout (no tables).")
+
+
+def json_mode(enabled: bool) -> None:
+    """Under ``--json`` the tables stay silent, so stdout holds the JSON object only."""
+    if enabled:
+        console.quiet = True
+
+
+def echo_json(doc: Any) -> None:
+    """Write ``doc`` as one JSON object (one line) on stdout; numpy values and paths as plain JSON."""
+    sys.stdout.write(json.dumps(doc, default=_plain_json, ensure_ascii=False) + "\n")
+    sys.stdout.flush()
+
+
+def _plain_json(value: Any) -> Any:
+    if hasattr(value, "item") and callable(value.item):  # numpy scalars
+        return value.item()
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    return str(value)
 
 T = TypeVar("T")
 P = TypeVar("P")
@@ -47,7 +105,9 @@ SeedOption = typer.Option(None, "--seed", min=0, help="Random seed (>= 0): the s
 #: ``--crs`` option of every command that reads LAS/LAZ (for files without a CRS record, e.g. AHN).
 CrsOption = typer.Option(None, "--crs", help="CRS of inputs that carry none, e.g. EPSG:28992.")
 #: Required ``--footprints`` option of the commands that split by building.
-FootprintsOption = typer.Option(..., "--footprints", "-f", help="Building footprints (GeoJSON).", dir_okay=False)
+FootprintsOption = typer.Option(..., "--footprints", "-f", dir_okay=False,
+                                help="Building footprints: GeoJSON; GeoPackage, Shapefile or FlatGeobuf with "
+                                     "the gis extra.")
 #: ``--id-field`` option of every command that reads footprints.
 IdFieldOption = typer.Option(None, "--id-field", help="Footprint property holding the building id (default 'id').")
 
@@ -124,7 +184,7 @@ def progress(transient: bool = False) -> Progress:
         TimeRemainingColumn(),
         console=err_console,
         transient=transient,
-        disable=not sys.stderr.isatty(),
+        disable=not sys.stderr.isatty() or _state["quiet"],
     )
 
 
