@@ -159,7 +159,10 @@ def _pooled(scores: list[MapScore]) -> MapScore:
 
 
 def _rate(s: MapScore) -> str:
-    return f"{s.false_per_unit:.1f}" if s.blank_area > 0 else "–"
+    """False openings per 500 m² of seen blank wall, and the count behind it ("∞" when none of it was seen)."""
+    if s.blank_area > 0:
+        return f"{s.false_per_unit:.1f} ({s.false_blank})"
+    return f"∞ ({s.false_blank})" if s.false_blank else "– (0)"
 
 
 def _door_f1(s: MapScore) -> float:
@@ -175,18 +178,19 @@ def markdown(runs: list[SceneRun], evaluation: bool, title: str = "Standard scen
              "scored against truth openings at least 90 % seen by the campaigns so far (hard family: seen = "
              "line of sight at <= 80° incidence with expected samples <= 0.3 m apart). W+D F1: windows and doors "
              "pooled (IoU >= 0.5, same type). False/500 m²: windows and doors on façades without any opening, per "
-             "500 m² of their seen area. Figures in benchmarks/facade_scores.py.\n"),
+             "500 m² of their seen area (∞: openings on blank walls of which no cell counts as seen). Figures in benchmarks/facade_scores.py.\n"),
              ("| family | seed | points per campaign | W+D F1 after 1 | W+D F1 after last | door F1 after 1 / last | "
-             "window tp/fp/fn after last | door tp/fp/fn after last | false/500 m² after 1 / last (blank m²) | "
+             "window tp/fp/fn after last | door tp/fp/fn after last | false/500 m² (count) after 1 / last | "
+              "seen blank m² after 1 / last | "
              "update s |"),
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in runs:
         first, last = r.scores[0], r.scores[-1]
         w, d = last.window, last.door
         lines.append(f"| {r.family} | {r.seed} | {' / '.join(f'{n / 1e6:.2f} M' for n in r.points)} | "
                      f"{first.f1:.3f} | {last.f1:.3f} | {_door_f1(first):.3f} / {_door_f1(last):.3f} | "
                      f"{w['tp']}/{w['fp']}/{w['fn']} | {d['tp']}/{d['fp']}/{d['fn']} | "
-                     f"{_rate(first)} / {_rate(last)} ({last.blank_area:.0f}) | "
+                     f"{_rate(first)} / {_rate(last)} | {first.blank_area:.0f} / {last.blank_area:.0f} | "
                      f"{' / '.join(f'{s:.0f}' for s in r.seconds)} |")
     for family in dict.fromkeys(r.family for r in runs):
         mine = [r for r in runs if r.family == family]
@@ -194,7 +198,8 @@ def markdown(runs: list[SceneRun], evaluation: bool, title: str = "Standard scen
         after = [_pooled([r.scores[k] for r in mine]) for k in range(n)]
         lines.append(f"| **{family}, all seeds** | | | **{after[0].f1:.3f}** | **{after[-1].f1:.3f}** | "
                      f"**{_door_f1(after[0]):.3f} / {_door_f1(after[-1]):.3f}** | | | "
-                     f"**{_rate(after[0])} / {_rate(after[-1])}** | |")
+                     f"**{_rate(after[0])} / {_rate(after[-1])}** | {after[0].blank_area:.0f} / "
+                     f"{after[-1].blank_area:.0f} | |")
     hard = [r for r in runs if r.family == "hard"]
     if hard:
         lines.append("\nHard-family campaigns: " + "; ".join(
