@@ -151,6 +151,9 @@ def test_wheel_holds_the_shipped_weights_and_schemas(tmp_path):
                if p.is_file() and p.suffix in (".pt", ".joblib", ".json") and "__pycache__" not in p.parts}
     assert shipped and shipped <= names, sorted(shipped - names)
     assert "lidarmap/py.typed" in names
+    viewer = {"lidarmap/viewer/static/viewer.bundle.js", "lidarmap/viewer/templates/viewer.html",
+              "lidarmap/viewer/THREE_LICENSE", "lidarmap/viewer/src/viewer.js"}  # the page's script, its licence
+    assert viewer <= names, sorted(viewer - names)
     modules = {str(p.relative_to(ROOT)) for p in PACKAGE.rglob("*.py")}
     assert modules <= names, sorted(modules - names)[:5]
 
@@ -169,6 +172,11 @@ def test_demo_runs_end_to_end_on_a_reduced_scene(tmp_path):
     assert (out / "city.lmap").is_file() and (out / "city.city.json").is_file()
     buildings = [p for p in (out / "aerial" / "buildings").iterdir() if (p / "mesh.ply").is_file()]
     assert len(buildings) >= 2
+    # run's glb: one node per reconstructed building; the demo's viewer page, its path printed
+    from lidarmap.export.gltf import glb_building_ids
+
+    assert sorted(glb_building_ids((out / "aerial" / "buildings.glb").read_bytes())) == sorted(p.name for p in buildings)
+    assert f"viewer page: {(out / 'view.html').resolve()}" in proc.stdout.replace("\n", "")
     # the façade table scores every campaign against the truth: two rows with a window F1 of at least 0.8
     lines = proc.stdout.splitlines()
     table = lines[next(i for i, line in enumerate(lines) if "window F1" in line):]

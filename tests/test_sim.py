@@ -393,6 +393,45 @@ def test_cli_simulate(tmp_path: Path):
     assert "buildings must be between" in bad.output and "Traceback" not in bad.output
 
 
+# ---------------------------------------------------------------- ray engines (embreex is x86-64 only)
+def test_trimesh_ray_tracer_gives_the_same_returns_as_embree() -> None:
+    pytest.importorskip("embreex", reason="the comparison needs Embree (x86-64)")
+    from lidarmap.sim.raycast import Tracer
+
+    scene = build_city(SimParams(seed=3, buildings=2, campaigns=0)).scene([])
+    corners = scene.triangles.reshape(-1, 3)
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    rng = np.random.default_rng(11)
+    n = 800
+    origins = np.column_stack([rng.uniform(lo[0], hi[0], n), rng.uniform(lo[1], hi[1], n), np.full(n, hi[2] + 50)])
+    dirs = np.column_stack([rng.normal(0, 0.3, n), rng.normal(0, 0.3, n), -np.ones(n)])
+    fast, slow = (Tracer(scene, engine=engine).trace(origins, dirs, max_range=500) for engine in ("embree", "triangle"))
+    assert len(fast.ray) > n // 2 and np.any(fast.number_of_returns > 1)  # trees give multiple returns
+    assert np.array_equal(fast.ray, slow.ray) and np.array_equal(fast.tri, slow.tri)
+    assert np.array_equal(fast.range, slow.range)  # ranges come from the triangle's plane in float64 either way
+    assert np.array_equal(fast.stop_tri, slow.stop_tri)
+
+
+def test_ray_engine_falls_back_without_embree(monkeypatch: pytest.MonkeyPatch) -> None:
+    from lidarmap.sim import raycast
+
+    monkeypatch.setattr(raycast, "_embree_available", lambda: False)
+    monkeypatch.delenv(raycast.ENGINE_ENV, raising=False)
+    assert raycast.ray_engine() == "triangle"
+    monkeypatch.setenv(raycast.ENGINE_ENV, "embree")
+    with pytest.raises(ConfigError, match="LIDARMAP_RAY_ENGINE=embree but embreex is not installed"):
+        raycast.ray_engine()
+    monkeypatch.setenv(raycast.ENGINE_ENV, "optix")
+    with pytest.raises(ConfigError, match=r"LIDARMAP_RAY_ENGINE='optix': use one of auto, embree, triangle"):
+        raycast.ray_engine()
+    monkeypatch.setenv(raycast.ENGINE_ENV, "triangle")
+    box = build_city(SimParams(seed=3, buildings=2, campaigns=0)).scene([])
+    tracer = raycast.Tracer(box)
+    assert tracer.engine == "triangle"
+    tri, rng = tracer.first_hit(np.array([[0.0, 0.0, 500.0]]), np.array([[0.0, 0.0, -1.0]]))
+    assert tri[0] >= 0 and 380 < rng[0] < 420  # the ground (z ~ 84-112) seen from z = 500
+
+
 # --- hard family ---------------------------------------------------------------------------------------------------
 
 HARD = SimParams(seed=DEV_SEEDS[1], family="hard", buildings=2, campaigns=1)

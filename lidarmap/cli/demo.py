@@ -5,13 +5,13 @@
    with segmentation accuracy and voxel IoU against the truth next to the naive baseline;
 3. ``map update``: the façade map ``OUT/city.lmap`` from every mobile campaign in turn (refined, not rebuilt), and
    the roofs of the aerial scan, with the per-campaign table of window F1, IoU, plane offset, σ, unknown area, ε;
-4. ``map export`` / ``map render``: ``OUT/city.city.json`` and one PNG per façade in ``OUT/renders``.
+4. ``map export`` / ``map render`` / ``view``: ``OUT/city.city.json``, one PNG per façade in ``OUT/renders`` and
+   the viewer page ``OUT/view.html``.
 """
 
 from __future__ import annotations
 
 import math
-import shutil
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -28,10 +28,10 @@ from lidarmap.cli.common import (
     progress,
     table_console,
 )
-from lidarmap.errors import InputError
 
-#: A file that marks a folder as a demo output, so a later demo may replace it (and nothing else).
-MARKER = "lidarmap-demo.txt"
+#: What a demo writes into its folder (listed in the folder's marker, :mod:`lidarmap.io.outdir`): a later demo
+#: replaces these and nothing else.
+DEMO_OUTPUTS = ("city", "aerial", "city.lmap", "city.lmap.lock", "city.city.json", "renders")
 
 
 def register(app: typer.Typer) -> None:
@@ -62,21 +62,18 @@ def demo_command(
         console.rule("façade map (lidarmap map update, one campaign after the other)")
         _facade_map(out, city, config, sim_params.seed)
     console.rule("outputs")
+    _viewer_page(out)
     _outputs(out)
     console.print(f"demo done in {time.perf_counter() - started:.0f} s")
 
 
 def _prepare(out: Path) -> None:
-    """Refuse a folder that is neither empty nor an earlier demo; clear an earlier demo."""
-    if out.exists():
-        if not out.is_dir():
-            raise InputError("demo output exists and is not a folder", out)
-        if any(out.iterdir()):
-            if not (out / MARKER).exists():
-                raise InputError("folder is not empty and is not an earlier demo; choose another --out", out)
-            shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / MARKER).write_text("made by `lidarmap demo`; a later demo replaces this folder\n", encoding="utf-8")
+    """Refuse a folder that is neither empty nor an earlier demo; clear what an earlier demo wrote (only that)."""
+    from lidarmap.io.outdir import claim_out_dir, remove_marked, start_marked_dir
+
+    claim_out_dir(out, "demo", "demo output")
+    remove_marked(out)
+    start_marked_dir(out, "demo", DEMO_OUTPUTS)
 
 
 def _simulate(city: Path, params: Any) -> Any:
@@ -191,6 +188,15 @@ def _facade_map(out: Path, truth: Any, config: Path | None, seed: int) -> None:
     render_map(building_map, out / "renders")
 
 
+def _viewer_page(out: Path) -> None:
+    """``OUT/view.html``: the façade map in 3D (the aerial run without campaigns); prints its path."""
+    from lidarmap.cli.view import view_command
+
+    source = out / "city.lmap" if (out / "city.lmap").is_file() else out / "aerial"
+    view_command(source, out / "view.html", None)
+    table_console().print(f"viewer page: {(out / 'view.html').resolve()}")
+
+
 def _fmt(value: float, digits: int = 3) -> str:
     return f"{value:.{digits}f}" if value is not None and math.isfinite(value) else "-"
 
@@ -199,9 +205,11 @@ def _outputs(out: Path) -> None:
     rows = [
         ("city/", "simulated data: als.laz, mls_<i>.laz, trajectory_<i>.csv, footprints.geojson, truth/"),
         ("aerial/buildings/<id>/", "points.laz, voxels.npz/.vox, mesh.ply/.obj (CRS, double precision)"),
-        ("aerial/buildings.city.json", "CityJSON 2.0: LoD1 blocks + LoD2.2 meshes of the reconstructed buildings"),
+        ("aerial/buildings.city.json", "CityJSON 2.0: LoD1 blocks + LoD2.2 planar faces, footprint coverage"),
+        ("aerial/buildings.glb", "glTF 2.0 of the meshes (local origin) for viewers"),
         ("city.lmap", "the façade map (SQLite; try `lidarmap map show` / `map history`)"),
-        ("city.city.json", "CityJSON 2.0 of the map: walls with windows/doors, roofs, uncertainties"),
+        ("city.city.json", "CityJSON 2.0 of the map: LoD 3 walls with windows/doors, LoD 2, roofs, uncertainties"),
+        ("view.html", "3D viewer page of the map (self-contained: open it in a browser)"),
         ("renders/", "one PNG per façade: layers, windows (red, with ε), unknown regions (white)"),
     ]
     table = Table(show_header=False)

@@ -34,6 +34,12 @@ def simulate_command(
     family: Optional[str] = typer.Option(None, "--family", help="Scene family: standard (default) or hard "
                                          "(randomised façades, glass, grazing side walls, varied campaigns; "
                                          "docs/simulator.md)."),
+    mls_format: Optional[str] = typer.Option(None, "--mls-format", help="Mobile campaigns as laz (default), ply "
+                                             "(binary) or ply_ascii, as public MLS data sets come (docs/mls.md)."),
+    mls_origins: Optional[bool] = typer.Option(None, "--mls-origins/--no-mls-origins", help="PLY: per-point "
+                                               "sensor origins x_origin, y_origin, z_origin (default: none)."),
+    mls_gps_time: Optional[bool] = typer.Option(None, "--mls-gps-time/--no-mls-gps-time", help="PLY: per-point "
+                                                "GPS time (default: yes)."),
     config: Optional[Path] = ConfigOption,
 ) -> None:
     """Simulate a city (aerial als.laz, mobile mls_<i>.laz + trajectory_<i>.csv, footprints.geojson, truth/)."""
@@ -42,7 +48,8 @@ def simulate_command(
         simulate,
     )
 
-    params = params_from(SimParams, config, seed=seed, buildings=buildings, campaigns=campaigns, family=family)
+    params = params_from(SimParams, config, seed=seed, buildings=buildings, campaigns=campaigns, family=family,
+                         mls_format=mls_format, mls_origins=mls_origins, mls_gps_time=mls_gps_time)
     with progress() as bar:
         tasks: dict[str, int] = {}
 

@@ -19,6 +19,9 @@ class SimParams:
         campaigns (3): mobile campaigns (``mls_<i>.laz`` + ``trajectory_<i>.csv``); 0 writes none.
         streets (0): parallel streets lined with buildings; 0 = automatic (1 up to 10 buildings, else 2).
         trees_per_100m (7.0): street trees per 100 m of sidewalk (both sides counted separately).
+        trees_touching (0): trees against the walls of existing buildings, crowns over the roof edges
+            (:mod:`lidarmap.sim.trees`).
+        leaf_off (False): bare crowns (twigs: fewer, smaller scatterers) instead of leaf-on ones.
         parking_occupancy (0.5): probability that a parking slot holds a car, drawn anew for every acquisition.
     Aerial scan (als.laz)
         als_density (12.0): mean pulse (first-return) density over the scene in points/m², strip overlap included.
@@ -42,6 +45,12 @@ class SimParams:
         mls_label_error (0.01): fraction of points the simulated classifier labels wrongly.
         mls_misregistration (0.04): largest horizontal shift (metres) of a campaign's rigid misregistration;
             the vertical shift is at most half of it, the rotation about z at most 0.01°. 0 disables it.
+        mls_format ("laz"): how the campaigns are written: "laz" (``mls_<i>.laz``), "ply" (binary little-endian
+            ``mls_<i>.ply``, double coordinates) or "ply_ascii" (ASCII PLY) as public MLS data sets deliver them
+            (docs/mls.md); the trajectory CSV is written in every case.
+        mls_origins (False): PLY only: every point carries its pulse's sensor origin (x_origin, y_origin, z_origin,
+            misregistered like the point).
+        mls_gps_time (True): PLY only: every point carries its GPS time (gps_time).
     Truth
         visibility_cell (0.1): cell size (metres) of the per-façade visibility grids.
     Family (docs/simulator.md, "Hard family")
@@ -65,6 +74,7 @@ class SimParams:
         "campaigns": ">= 0",
         "streets": ">= 0",
         "trees_per_100m": ">= 0",
+        "trees_touching": ">= 0",
         "parking_occupancy": ">= 0",
         "als_density": ">= 0",
         "als_altitude": ">= 0",
@@ -93,6 +103,7 @@ class SimParams:
         "gps_drift_vertical": "[0, 1]",
         "visibility_max_incidence": "(0, 90]",
         "visibility_max_spacing": "> 0",
+        "mls_format": "in laz, ply, ply_ascii",
     }
 
     seed: int = 0
@@ -100,6 +111,8 @@ class SimParams:
     campaigns: int = 3
     streets: int = 0
     trees_per_100m: float = 7.0
+    trees_touching: int = 0
+    leaf_off: bool = False
     parking_occupancy: float = 0.5
     als_density: float = 12.0
     als_altitude: float = 300.0
@@ -128,6 +141,9 @@ class SimParams:
     gps_drift_vertical: float = 0.05
     visibility_max_incidence: float = 80.0
     visibility_max_spacing: float = 0.3
+    mls_format: str = "laz"
+    mls_origins: bool = False
+    mls_gps_time: bool = True
 
     def __post_init__(self) -> None:
         check_params(self)

@@ -32,6 +32,7 @@ from lidarmap.sim.mobile import (
     sensor_path,
 )
 from lidarmap.sim.params import SimParams
+from lidarmap.sim.plyout import write_points_ply
 from lidarmap.sim.raycast import Tracer
 from lidarmap.sim.scan import Scan
 from lidarmap.sim.truth import FORMAT, VERSION, save_ply, solid_mesh, write_json
@@ -85,7 +86,7 @@ def simulate(out_dir: str | Path, params: SimParams | None = None, progress: Pro
     _write_meshes(city, out / "truth" / "meshes")
     doc = _scene_doc(city, params, als_doc, campaign_docs, fractions)
     write_json(out / "truth" / "scene.json", doc)
-    _remove_stale(out, params.campaigns, [b.id for b in city.buildings])
+    _remove_stale(out, params.campaigns, [b.id for b in city.buildings], params.mls_format)
     report("truth", 1, 1)
     return SimResult(out_dir=out, als=out / "als.laz", als_points=als_doc["points"],
                      mls=[out / c["file"] for c in campaign_docs], mls_points=[c["points"] for c in campaign_docs],
@@ -94,12 +95,14 @@ def simulate(out_dir: str | Path, params: SimParams | None = None, progress: Pro
 
 
 #: Per-campaign and per-building outputs: files of an earlier, larger simulation in the same folder are removed.
-_INDEXED = ("mls_{}.laz", "trajectory_{}.csv", "truth/mls_{}_labels.npz", "truth/visibility_{}.npz")
+_INDEXED = ("mls_{}.laz", "mls_{}.ply", "trajectory_{}.csv", "truth/mls_{}_labels.npz", "truth/visibility_{}.npz")
 
 
-def _remove_stale(out: Path, campaigns: int, building_ids: list[int]) -> None:
-    """Delete simulator outputs this run did not write (same names, other indices), so the folder is consistent."""
-    wanted = {p.format(i) for p in _INDEXED for i in range(1, campaigns + 1)}
+def _remove_stale(out: Path, campaigns: int, building_ids: list[int], mls_format: str = "laz") -> None:
+    """Delete simulator outputs this run did not write (same names, other indices or the other point format), so
+    the folder is consistent."""
+    other = "mls_{}.ply" if mls_format == "laz" else "mls_{}.laz"
+    wanted = {p.format(i) for p in _INDEXED if p != other for i in range(1, campaigns + 1)}
     wanted |= {f"truth/meshes/building_{i}.ply" for i in building_ids}
     for template in (*_INDEXED, "truth/meshes/building_{}.ply"):
         name = re.compile(re.escape(template).replace(r"\{\}", r"\d+"))
@@ -150,10 +153,14 @@ def _mobile(city: City, params: SimParams, index: int, out: Path, report: Progre
                            on_stops=lambda *chunk: hits.add(tracer.scene.facade_id, *chunk)) for yaw in yaws]
     scan = scans[0] if len(scans) == 1 else _by_time(Scan.concatenate(scans))
     drift = gps_drift(params, index, path.time[0], path.time[-1]) if setup else None
-    names = {"file": f"mls_{index}.laz", "trajectory": f"trajectory_{index}.csv",
+    suffix = "laz" if params.mls_format == "laz" else "ply"
+    names = {"file": f"mls_{index}.{suffix}", "trajectory": f"trajectory_{index}.csv",
              "labels": f"truth/mls_{index}_labels.npz", "visibility": f"truth/visibility_{index}.npz"}
-    write_las(out / names["file"], scan.to_cloud(city.frame, city.crs, transform=_delivered(campaign, drift,
-                                                                                            scan.gps_time)))
+    cloud = scan.to_cloud(city.frame, city.crs, transform=_delivered(campaign, drift, scan.gps_time))
+    if params.mls_format == "laz":
+        write_las(out / names["file"], cloud)
+    else:
+        _write_mobile_ply(out / names["file"], cloud, city, campaign, path, params, drift)
     write_trajectory(out / names["trajectory"], _crs_trajectory(city, campaign, path, drift))
     _write_labels(out / names["labels"], scan)
     _visibility(city, params, tracer, path, hits, campaign, out / names["visibility"], fractions, yaws, setup)
@@ -165,6 +172,23 @@ def _mobile(city: City, params: SimParams, index: int, out: Path, report: Progre
 def _by_time(scan: Scan) -> Scan:
     """Points of several scanner heads interleaved by GPS time, as one receiver's file would hold them."""
     return scan.take(np.argsort(scan.gps_time, kind="stable"))
+
+
+def _write_mobile_ply(target: Path, cloud, city: City, campaign: Campaign, path, params: SimParams,
+                      drift: Drift | None) -> None:
+    """A campaign as a PLY file (``mls_format``): double coordinates, the LAS attributes as PLY properties, GPS
+    time and the pulses' sensor origins (delivered like the points: misregistered, drifted) when asked."""
+    columns = {"x": cloud.xyz[:, 0], "y": cloud.xyz[:, 1], "z": cloud.xyz[:, 2]}
+    for name in ("intensity", "return_number", "number_of_returns", "classification", "red", "green", "blue"):
+        columns[name] = cloud.attrs[name]
+    gps_time = cloud.attrs["gps_time"]
+    if params.mls_gps_time:
+        columns["gps_time"] = gps_time
+    if params.mls_origins:
+        origins = _delivered(campaign, drift, gps_time)(city.frame.to_crs(path.at(gps_time)[0]))
+        columns.update(x_origin=origins[:, 0], y_origin=origins[:, 1], z_origin=origins[:, 2])
+    write_points_ply(target, columns, [f"crs EPSG:{city.crs.to_epsg()}", "lidarmap simulator mobile campaign"],
+                     binary=params.mls_format == "ply")
 
 
 def _delivered(campaign: Campaign, drift: Drift | None, gps_time: np.ndarray) -> Callable:
