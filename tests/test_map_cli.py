@@ -194,8 +194,8 @@ def test_aerial_update_adds_roof_planes_to_the_maps_buildings(sim, map_copy, tmp
     assert roofs >= 2 and campaign.summary["roofs"] == roofs and f"{roofs} roof planes" in out
     assert run("map", "export", map_copy, "-o", tmp_path / "r.city.json")[0] == 0
     doc = json.loads((tmp_path / "r.city.json").read_text())
-    kinds = [s["type"] for o in doc["CityObjects"].values() for g in o.get("geometry", [])
-             for s in g.get("semantics", {}).get("surfaces", [])]
+    kinds = [s["type"] for o in doc["CityObjects"].values() for g in o.get("geometry", []) if g["lod"] == "2"
+             for s in g.get("semantics", {}).get("surfaces", [])]  # LoD 3 (with openings) repeats the roofs
     assert validate_cityjson(doc) == [] and kinds.count("RoofSurface") == roofs
     before = map_copy.read_bytes()
     one_line_error(*run("map", "update", map_copy, "--aerial", sim.als)[::2], "campaign already applied: als.laz")
