@@ -200,7 +200,7 @@ def aerial_glb_building(b: AerialBuilding, record: dict[str, Any] | None = None)
     attributes = {**b.attributes, "ground_z": b.ground_z, "height": b.height,
                   "roof_z_max": float(vertices[:, 2].max()) if len(vertices) else None}
     if record:
-        attributes.update({k: v for k, v in record.items() if k in ("status", "coverage", "fingerprint") and v})
+        attributes.update({k: v for k, v in record.items() if k in ("status", "coverage") and v})
     return GlbBuilding(id=str(b.id), parts=parts, attributes=attributes)
 
 
