@@ -264,7 +264,8 @@ def test_page_draws_in_headless_chromium_counts_buildings_and_picks_one(map_glb,
     page = tmp_path / "view.html"
     page.write_text(viewer_page(map_glb, "test map"), encoding="utf-8")
     shot = tmp_path / "view.png"
-    result = open_viewer(page, screenshot=shot, pick="A", size=(900, 600))
+    no_roofs = tmp_path / "no_roofs.png"
+    result = open_viewer(page, screenshot=shot, pick="A", size=(900, 600), hide=("roofs",), hidden_screenshot=no_roofs)
     assert result.error is None, result.console
     assert result.count_shown == str(len(glb_building_ids(map_glb))) == "2"
     assert result.picked == "A"
@@ -275,6 +276,12 @@ def test_page_draws_in_headless_chromium_counts_buildings_and_picks_one(map_glb,
     # the building drew: its wall colour is on screen (not just the background and the selection box)
     wall = np.array([219, 214, 204])
     assert (np.abs(canvas - wall).max(axis=2) < 60).sum() > 500
+    # the roofs toggle: roof-coloured (terracotta: red well above green and blue) pixels before, none after
+    def roof_pixels(png: Path) -> int:
+        r, g, b = np.moveaxis(np.asarray(Image.open(png).convert("RGB"), dtype=np.float64)[:, 330:], 2, 0)
+        return int(((r - g > 40) & (r - b > 50)).sum())
+
+    assert roof_pixels(shot) > 300 and roof_pixels(no_roofs) < 0.05 * roof_pixels(shot)
     print(f"screenshot: {shot}")
 
 
