@@ -2,7 +2,8 @@
 
 A street of analytic buildings (the scene of tests/test_facade.py repeated along both sides of a street, each with a
 window grid, a recessed door, a balcony and a van in front of one building in two) is ray-cast by a profile scanner
-(``python benchmarks/bench_facade.py [--points N]``). Compares the two plane detectors (efficient RANSAC and region
+(``python benchmarks/bench_facade.py [--points N]``). Then the map of one campaign on the standard scene beside the
+hard family (``[--eval] [--scenes 3] [--family-only | --no-family]``, benchmarks/facade_scores.py). Compares the two plane detectors (efficient RANSAC and region
 growing) on the same campaign; the baseline is region growing. Prints one markdown section.
 """
 
@@ -25,7 +26,9 @@ from shapely.geometry import Polygon, box  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "benchmarks"))
 
+import facade_scores  # benchmarks/facade_scores.py
 from test_facade import (  # noqa: E402
     BALCONY_RAIL,
     BALCONY_SLAB,
@@ -234,7 +237,18 @@ def main() -> None:
     ap.add_argument("--step", type=float, default=0.045)
     ap.add_argument("--angle", type=float, default=0.16)
     ap.add_argument("--sim-seed", type=int, default=0)
+    facade_scores.add_arguments(ap)
     args = ap.parse_args()
+    if not args.family_only:
+        speed_and_accuracy(args)
+    if not args.no_family:
+        if args.family_only:
+            print("## bench_facade\n")
+        runs = facade_scores.run_families(args.eval, args.scenes, campaigns=1)
+        print(facade_scores.markdown(runs, args.eval, title="One campaign: standard scene vs hard family"))
+
+
+def speed_and_accuracy(args) -> None:
     t0 = time.perf_counter()
     cloud, traj, fps, truth = make_street(args.per_side, args.step, args.angle)
     gen = time.perf_counter() - t0

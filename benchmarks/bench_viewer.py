@@ -58,9 +58,9 @@ def glb_world_vertices(path: Path) -> np.ndarray:
     return np.vstack(parts)
 
 
-def vertex_error(run: Path, records: list[dict], glb: Path) -> float:
+def vertex_error(run: Path, folders: list[str], glb: Path) -> float:
     """Max over the PLY vertices of the distance to the nearest glb vertex (m); the better of z-up / y-up."""
-    ply = np.vstack([trimesh.load(building_dir(run, r["id"]) / "mesh.ply", process=False).vertices for r in records])
+    ply = np.vstack([trimesh.load(building_dir(run, f) / "mesh.ply", process=False).vertices for f in folders])
     world = glb_world_vertices(glb)
     best = np.inf
     for to_crs in (np.eye(4), np.linalg.inv(Y_UP)):
@@ -88,12 +88,13 @@ def main() -> None:
         run = args.run or delft_run(work)
         summary = json.loads((run / "summary.json").read_text())
         records, crs = summary["records"], summary.get("crs") or ""
+        stems = {fid: Path(folder).name for fid, folder in summary["folders"].items()}
         copy = work / "run"  # write into a copy: the run folder is left as it is
         for r in records:
-            shutil.copytree(building_dir(run, r["id"]), building_dir(copy, r["id"]))
+            shutil.copytree(building_dir(run, stems[r["id"]]), building_dir(copy, stems[r["id"]]))
         ours = copy / "buildings.glb"
-        t_ours = timed(lambda: write_run_glb(copy, records, (), crs))
-        err_ours = vertex_error(run, records, ours)
+        t_ours = timed(lambda: write_run_glb(copy, records, stems, (), crs))
+        err_ours = vertex_error(run, [stems[r["id"]] for r in records], ours)
         n_ids = len(glb_building_ids(ours.read_bytes()))
         rows = [("lidarmap `write_run_glb` (what `run` does)", t_ours, ours.stat().st_size, err_ours)]
         page = work / "view.html"
@@ -101,7 +102,7 @@ def main() -> None:
         browser = page_figures(page, records[0]["id"])
         cjio = shutil.which("cjio")
         if cjio and (run / "buildings.city.json").is_file():
-            rows.append(cjio_row(cjio, run, records, work / "cjio.glb", args.cjio_timeout))
+            rows.append(cjio_row(cjio, run, [stems[r["id"]] for r in records], work / "cjio.glb", args.cjio_timeout))
 
     print("## bench_viewer\n")
     print(f"AHN3 Delft run: {len(records)} buildings ({sum(r['mesh_faces']['surface'] for r in records):,} mesh "
@@ -126,7 +127,7 @@ def main() -> None:
     print("\nTargets: glb < 2 s, within 1 mm of the PLY meshes; the page draws in < 5 s.")
 
 
-def cjio_row(cjio: str, run: Path, records: list[dict], theirs: Path, timeout: float) -> tuple:
+def cjio_row(cjio: str, run: Path, folders: list[str], theirs: Path, timeout: float) -> tuple:
     """The baseline: cjio's glb export of the run's CityJSON (one run; stopped after ``timeout`` s)."""
     started = time.perf_counter()
     try:
@@ -136,7 +137,7 @@ def cjio_row(cjio: str, run: Path, records: list[dict], theirs: Path, timeout: f
         return ("baseline: `cjio buildings.city.json export glb`", timeout, None, None)
     seconds = time.perf_counter() - started
     return ("baseline: `cjio buildings.city.json export glb`", seconds, theirs.stat().st_size,
-            vertex_error(run, records, theirs))
+            vertex_error(run, folders, theirs))
 
 
 def page_mb(browser: dict) -> str:

@@ -69,19 +69,21 @@ def run(tiles: Sequence[str | Path] | str | Path, footprints: Footprints, out_di
 def update_map(map_path: str | Path, points: str | Path | None = None, trajectory: str | Path | None = None,
                footprints: str | Path | None = None, aerial: str | Path | None = None, id_field: str = "id",
                crs: str | None = None, seed: int = 0, facade: FacadeParams | None = None,
-               refine: RefineParams | None = None, update: UpdateParams | None = None) -> UpdateResult:
-    """Fuse one campaign into the map file (``lidarmap map update``): a mobile campaign (``points`` + ``trajectory``
-    + ``footprints``) or an aerial scan (``aerial``). One transaction; the map is created when missing."""
+               refine: RefineParams | None = None, update: UpdateParams | None = None,
+               columns: str | None = None) -> UpdateResult:
+    """Fuse one campaign into the map file (``lidarmap map update``): a mobile campaign (``points``: LAS/LAZ, PLY or
+    text with ``columns``; ``trajectory`` and ``footprints`` optional, docs/mls.md) or an aerial scan (``aerial``).
+    One transaction; the map is created when missing."""
     as_path = (lambda p: None if p is None else Path(p))
     inputs = campaign_inputs(as_path(points), as_path(trajectory), as_path(aerial), as_path(footprints), id_field,
-                             crs)
+                             crs, columns)
     return apply_campaign(Path(map_path), inputs, (facade or FacadeParams(), refine or RefineParams()), seed,
                           update=update)
 
 
 def open_map(map_path: str | Path, as_of: int | None = None) -> BuildingMap:
     """The stored map (as it was right after campaign ``as_of`` when given)."""
-    with MapStore.open(map_path) as store:
+    with MapStore.open(map_path, readonly=True) as store:
         return store.load(as_of=as_of)
 
 

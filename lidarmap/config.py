@@ -229,8 +229,16 @@ def resolve(params_cls: type[P], config: dict[str, Any] | None = None, section: 
     return _build(params_cls, values, section)
 
 
-def check_sections(config: dict[str, Any], known: set[str], path: str | Path | None = None) -> None:
+#: Every config table some command reads: one config file may serve every command, so a command accepts the tables
+#: of the others, but a table no command knows (a typo: ``[prepp]``) is an error. A new parameter class adds its
+#: ``section`` here.
+KNOWN_TABLES = frozenset({"prep", "run", "segment", "segment_train", "segment_baseline", "baseline", "densify",
+                          "flatten", "voxel", "mesh", "coverage", "lod22", "facade", "refine", "update", "simulate"})
+
+
+def check_sections(config: dict[str, Any], known: set[str] | frozenset[str] = KNOWN_TABLES,
+                   path: str | Path | None = None) -> None:
     """Refuse config tables that no stage knows."""
-    unknown = sorted(set(config) - known)
+    unknown = sorted(set(config) - set(known))
     if unknown:
         raise ConfigError(f"unknown config table(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})", path)

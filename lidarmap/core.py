@@ -99,13 +99,16 @@ class PointCloud:
 
 @dataclasses.dataclass
 class Footprints:
-    """Footprint polygons (shapely, in ``crs``) with their ids and original properties."""
+    """Footprint polygons (shapely, in ``crs``) with their ids and original properties; ``rejected`` (id -> reason)
+    lists the features of the file that gave no usable polygon, ``repaired`` the ids of invalid polygons repaired."""
 
     ids: list[str]
     polygons: np.ndarray  # object array of shapely Polygon/MultiPolygon
     properties: list[dict[str, Any]]
     crs: CRS
     source: str | None = None
+    rejected: dict[str, str] = dataclasses.field(default_factory=dict)
+    repaired: list[str] = dataclasses.field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -118,8 +121,8 @@ class Footprints:
         index = np.asarray(index)
         if index.dtype == bool:
             index = np.flatnonzero(index)
-        return Footprints([self.ids[i] for i in index], self.polygons[index],
-                          [self.properties[i] for i in index], self.crs, self.source)
+        return dataclasses.replace(self, ids=[self.ids[i] for i in index], polygons=self.polygons[index],
+                                   properties=[self.properties[i] for i in index])
 
     def to_crs(self, crs: CRS) -> "Footprints":
         """The same footprints reprojected to ``crs`` (2D, always x=easting/lon, y=northing/lat)."""
@@ -135,7 +138,7 @@ class Footprints:
         polygons = shapely.transform(self.polygons, project)
         if not np.all(np.isfinite(shapely.total_bounds(polygons))):
             raise CRSError(f"footprints cannot be reprojected to {target.name!r}", self.source)
-        return Footprints(self.ids, polygons, self.properties, target, self.source)
+        return dataclasses.replace(self, polygons=polygons, crs=target)
 
 
 @dataclasses.dataclass

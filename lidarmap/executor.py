@@ -35,7 +35,7 @@ from lidarmap.errors import ConfigError, LidarmapError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TaskFailure", "run_task", "map_tasks", "cluster_client", "check_cluster_params"]
+__all__ = ["TaskFailure", "run_task", "map_tasks", "cluster_client", "check_cluster_params", "derive_seed"]
 
 #: Seconds to wait for a remote scheduler before giving up with a one-line error.
 CONNECT_TIMEOUT_S = 20
@@ -206,3 +206,11 @@ def building_seed_sequence(seed: int, building_id: str) -> np.random.SeedSequenc
 def building_seed(seed: int, building_id: str) -> int:
     """A 32-bit integer seed drawn from :func:`building_seed_sequence` (for APIs that take an int)."""
     return int(building_seed_sequence(seed, building_id).generate_state(1)[0])
+
+
+def derive_seed(seed: int, *keys: int) -> int:
+    """A 32-bit integer seed for the sub-step ``keys`` of a task seeded ``seed``: the state of
+    ``SeedSequence(seed).spawn(...)``'s child with that spawn key, so sub-steps get independent streams (``seed * 31
+    + k`` collides across tasks) and every value fits the ``< 2**32`` seeds scikit-learn takes."""
+    sequence = np.random.SeedSequence(int(seed), spawn_key=tuple(int(k) for k in keys))
+    return int(sequence.generate_state(1)[0])

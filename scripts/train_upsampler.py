@@ -153,7 +153,8 @@ def augment(rel: torch.Tensor, move: torch.Tensor, gen: torch.Generator) -> tupl
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=DEFAULT_WEIGHTS, help="model file to write")
-    parser.add_argument("--data", type=Path, default=recipe.DATA_DIR, help="the shared real data folder")
+    parser.add_argument("--data", type=Path, default=None, help="the shared real data folder (default: "
+                        "$LIDARMAP_DATA, else ../shared/data from the working directory)")
     parser.add_argument("--check", action="store_true", help="compare with --out instead of writing it")
     args = parser.parse_args(argv)
     started = time.perf_counter()

@@ -95,7 +95,8 @@ def make_scene(rotation_deg: float = 30.0, offset=(412000.0, 5651000.0, 55.0), v
     dirs = np.column_stack([np.zeros_like(angles), np.cos(angles), np.sin(angles)])  # towards +y (the wall)
     o = np.repeat(np.column_stack([xs, np.full_like(xs, SENSOR_Y), np.full_like(xs, SENSOR_Z)]), len(angles), axis=0)
     v = np.tile(dirs, (len(xs), 1))
-    t = np.repeat(times, len(angles))
+    # a profiler fires pulse after pulse: each has its own time within its profile (ray evidence orders them)
+    t = np.repeat(times, len(angles)) + np.tile(np.arange(len(angles)) * (step / speed) / len(angles), len(xs))
     openings = [(w[0], w[1], w[2], w[3]) for w in _windows()] + [DOOR]
     cand = {
         "wall": _plane_hits(o, v, 1, 0.0, WALL[:2], WALL[2:], openings),

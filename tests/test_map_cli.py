@@ -144,14 +144,27 @@ def test_render_writes_one_png_per_facade(map1, tmp_path) -> None:
 def test_second_campaign_refines_the_map_and_as_of_exports_the_first(sim, map1, map_copy, tmp_path) -> None:
     first = tmp_path / "first.city.json"
     assert run("map", "export", map1[0], "-o", first)[0] == 0
-    code, out, err = run("map", "update", map_copy, *campaign_args(sim, 2))
+    # --json: one object on stdout, nothing else; -v: notes on stderr
+    code, out, err = run("-v", "map", "update", map_copy, *campaign_args(sim, 2), "--json")
     assert code == 0, err
+    update = json.loads(out)
+    assert out.count("\n") == 1
+    assert f"INFO: {map_copy}: campaign 2 (mls_2.laz + trajectory_2.csv) committed" in err
     with MapStore.open(map_copy) as store:
         assert [(c.campaign_id, c.kind) for c in store.campaigns()] == [(1, "mobile"), (2, "mobile")]
         after = store.load()
+        history = store.history()
     assert any(2 in f.campaigns for b in after.buildings.values() for f in b.facades)
+    assert update["campaign"]["campaign_id"] == 2 and update["campaign"]["kind"] == "mobile"
+    assert update["counts"]["buildings"] == count_map(after)["buildings"]
+    assert update["counts"]["windows"] == count_map(after)["windows"]
+    assert update["changes"] == history[-1][1]
     code, out, err = run("map", "history", map_copy)
     assert code == 0 and "2 campaign(s)" in out and "mls_2.laz + trajectory_2.csv" in out
+    code, out, err = run("map", "history", map_copy, "--json")
+    campaigns = json.loads(out)["campaigns"]
+    assert [(c["campaign_id"], c["kind"]) for c in campaigns] == [(1, "mobile"), (2, "mobile")]
+    assert campaigns[1]["changes"] == update["changes"]
     again = tmp_path / "again.city.json"
     assert run("map", "export", map_copy, "-o", again, "--as-of", "1")[0] == 0
     assert again.read_bytes() == first.read_bytes()  # the map as it was after campaign 1, exactly
@@ -237,6 +250,16 @@ def _corrupt_laz(sim, tmp_path: Path) -> Path:
     return out
 
 
+def _xyz_without_time(sim, tmp_path: Path) -> Path:
+    """The campaign's first points as x y z text: a trajectory file cannot place them (no GPS time)."""
+    from lidarmap.io.las import iter_las
+
+    xyz = next(iter_las(sim.mls[0], chunk_size=1000)).xyz
+    out = tmp_path / "plain.xyz"
+    np.savetxt(out, xyz, fmt="%.3f")
+    return out
+
+
 def _bad_config(sim, tmp_path: Path) -> Path:
     out = tmp_path / "cfg.toml"
     out.write_text("[facade]\nbogus = 1\n")
@@ -250,7 +273,8 @@ BAD = {
     "corrupt laz": (lambda s, t: ["--points", _corrupt_laz(s, t)], "corrupt.laz", "corrupt"),
     "unknown option": (lambda s, t: ["--bogus"], "No such option: --bogus", "lidarmap map update --help"),
     "config": (lambda s, t: ["--config", _bad_config(s, t)], "cfg.toml", "unknown option 'bogus'"),
-    "no trajectory": (lambda s, t: ["--trajectory", None], "--points needs --trajectory", ""),
+    "trajectory without gps time": (lambda s, t: ["--points", _xyz_without_time(s, t), "--crs", "EPSG:32632"],
+                                    "plain.xyz", "the points have no GPS time"),
 }
 
 
@@ -287,3 +311,27 @@ def test_commands_on_a_file_that_is_not_a_map(sim) -> None:
     for command in (["show"], ["history"], ["export", "-o", "x.json"], ["render", "-o", "renders"]):
         one_line_error(*run("map", command[0], sim.footprints, *command[1:])[::2], "footprints.geojson",
                        "not a lidarmap map (not an SQLite database)")
+
+
+# ---------------------------------------------------------------- --json: one object on stdout, nothing else
+def test_show_as_json(map1) -> None:
+    code, out, err = run("map", "show", map1[0], "--json")
+    assert code == 0, err
+    shown = json.loads(out)
+    with MapStore.open(map1[0]) as store:
+        first = store.load()
+    assert shown["state"] == "as of campaign 1"
+    assert [b["id"] for b in shown["buildings"]] == list(first.buildings)
+    facades = [f for b in shown["buildings"] for f in b["facades"]]
+    assert len(facades) == count_map(first)["facades"]
+    kinds = [e["kind"] for f in facades for e in f["elements"]]
+    assert kinds.count("window") == count_map(first)["windows"]
+
+
+def test_quiet_prints_nothing_but_errors(map1) -> None:
+    code, out, err = run("-q", "map", "show", map1[0])
+    assert code == 0 and out == "" and err == ""
+    code, out, err = run("-q", "map", "show", map1[0], "--building", "nope")
+    assert code == 2 and "no building 'nope' in this map" in err  # errors still show
+    code, out, err = run("map", "show", map1[0])
+    assert code == 0 and "façades" in out

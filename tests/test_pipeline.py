@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import shapely
 import trimesh
+from pyproj import CRS
 
 from lidarmap.aerial.densify import DensifyParams
 from lidarmap.aerial.flatten import FlattenParams
@@ -118,14 +119,43 @@ def test_cityjson_validates_with_both_lods(first_run) -> None:
     assert building["attributes"]["status"] == "existing" and building["attributes"]["measuredHeight"] > 3
 
 
+def test_run_writes_a_geopackage_of_every_footprint(city: Path, first_run) -> None:
+    pyogrio = pytest.importorskip("pyogrio", reason="pyogrio is in the test extra")
+    out, _ = first_run
+    info = pyogrio.read_info(out / "buildings.gpkg")
+    assert info["crs"] == "EPSG:32632" and info["geometry_type"] == "MultiPolygon"
+    _, _, wkb, columns = pyogrio.raw.read(out / "buildings.gpkg")
+    row = {name: list(values) for name, values in zip(info["fields"], columns)}
+    footprints = read_footprints(city / "footprints.geojson").to_crs(CRS.from_user_input(info["crs"]))
+    assert row["id"] == footprints.ids  # every footprint, in input order, dropped ones too
+    assert all(shapely.from_wkb(w).equals(p) for w, p in zip(wkb, footprints.polygons))
+    summary = json.loads((out / "summary.json").read_text())
+    dropped = summary["dropped_footprints"]
+    assert row["status"] == ["dropped" if i in dropped else "ok" for i in row["id"]]
+    assert row["reason"] == [dropped.get(i) for i in row["id"]]
+    records = {r["id"]: r for r in summary["records"]}
+    for k, building_id in enumerate(row["id"]):
+        if building_id in records:
+            points = read_las(out / "buildings" / building_id / "points.laz")
+            assert row["output_points"][k] == records[building_id]["output_points"] == len(points)
+            assert row["z_max"][k] == pytest.approx(points.xyz[:, 2].max(), abs=1e-3)
+            assert row["z_min"][k] < row["ground_z"][k] + 1 < row["z_max"][k]
+
+
 def test_second_run_resumes_and_a_changed_parameter_recomputes(city: Path, first_run, tmp_path: Path) -> None:
     out = tmp_path / "resumed"
     shutil.copytree(first_run[0], out)
     before = {n: (out / "buildings" / "1" / n).read_bytes() for n in DATA_FILES}
-    again = run_cli("run", str(city / "als.laz"), "-f", str(city / "footprints.geojson"), "-o", str(out))
+    again = run_cli("run", str(city / "als.laz"), "-f", str(city / "footprints.geojson"), "-o", str(out), "--json")
     assert again.returncode == 0, again.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["processed"] == [] and len(summary["skipped_finished"]) == 2
+    doc = json.loads(again.stdout)  # --json: nothing but one object on stdout
+    assert doc["processed"] == [] and doc["skipped"] == summary["skipped_finished"]
+    assert doc["dropped"] == summary["dropped_footprints"] and doc["failed"] == {}
+    assert doc["outputs"]["geopackage"] == str(out / "buildings.gpkg") and (out / "buildings.gpkg").is_file()
+    records = {r["id"]: r for r in summary["records"]}
+    assert all(b["output_points"] == records[b["id"]]["output_points"] for b in doc["buildings"])
     assert all((out / "buildings" / "1" / n).read_bytes() == before[n] for n in DATA_FILES)
     config = tmp_path / "c.toml"
     config.write_text("[voxel]\nsize = 0.5\n")
@@ -192,7 +222,7 @@ def test_run_refuses_bad_options_in_one_line(city: Path, tmp_path: Path, args: l
 def test_run_refuses_a_foreign_output_folder(city: Path, tmp_path: Path) -> None:
     (tmp_path / "mine.txt").write_text("precious")
     result = run_cli("run", str(city / "als.laz"), "-f", str(city / "footprints.geojson"), "-o", str(tmp_path))
-    assert result.returncode == 2 and "holds no earlier run" in result.stderr
+    assert result.returncode == 2 and "was not written by lidarmap" in result.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine.txt"]
 
 

@@ -253,7 +253,7 @@ def test_write_prep_index_counts_and_replaces_only_prep_output(tmp_path: Path) -
     assert [r["id"] for r in read_prep_index(out)] == ["a/b c"]
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "keep.txt").write_text("mine")
-    with pytest.raises(InputError, match="not empty and holds no earlier prep output"):
+    with pytest.raises(InputError, match="not empty and was not written by lidarmap"):
         write_prep(tmp_path / "other", result)
     assert (tmp_path / "other" / "keep.txt").read_text() == "mine"
 

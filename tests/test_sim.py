@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +18,13 @@ from lidarmap.io.footprints import read_footprints
 from lidarmap.io.las import read_las
 from lidarmap.io.trajectory import read_trajectory
 from lidarmap.sim import SimParams, build_city, load_truth, simulate
+from lidarmap.sim.city import BUILDING_LINE
 from lidarmap.sim.distance import MeshDistance
-from lidarmap.sim.mesh import KIND
+from lidarmap.sim.family import DEV_SEEDS, EVAL_SEEDS
+from lidarmap.sim.hard import build_hard_city, campaign_setup
+from lidarmap.sim.mesh import GLASS, KIND, Labels, Soup, quads
+from lidarmap.sim.raycast import Tracer
+from lidarmap.sim.visibility import pulse_spacing
 
 SEED = 7
 PARAMS = SimParams(seed=SEED, buildings=2, campaigns=2)
@@ -385,3 +391,201 @@ def test_cli_simulate(tmp_path: Path):
     bad = runner.invoke(app, ["simulate", str(tmp_path / "bad"), "--buildings", "0"])
     assert bad.exit_code == 2
     assert "buildings must be between" in bad.output and "Traceback" not in bad.output
+
+
+# ---------------------------------------------------------------- ray engines (embreex is x86-64 only)
+def test_trimesh_ray_tracer_gives_the_same_returns_as_embree() -> None:
+    pytest.importorskip("embreex", reason="the comparison needs Embree (x86-64)")
+    from lidarmap.sim.raycast import Tracer
+
+    scene = build_city(SimParams(seed=3, buildings=2, campaigns=0)).scene([])
+    corners = scene.triangles.reshape(-1, 3)
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    rng = np.random.default_rng(11)
+    n = 800
+    origins = np.column_stack([rng.uniform(lo[0], hi[0], n), rng.uniform(lo[1], hi[1], n), np.full(n, hi[2] + 50)])
+    dirs = np.column_stack([rng.normal(0, 0.3, n), rng.normal(0, 0.3, n), -np.ones(n)])
+    fast, slow = (Tracer(scene, engine=engine).trace(origins, dirs, max_range=500) for engine in ("embree", "triangle"))
+    assert len(fast.ray) > n // 2 and np.any(fast.number_of_returns > 1)  # trees give multiple returns
+    assert np.array_equal(fast.ray, slow.ray) and np.array_equal(fast.tri, slow.tri)
+    assert np.array_equal(fast.range, slow.range)  # ranges come from the triangle's plane in float64 either way
+    assert np.array_equal(fast.stop_tri, slow.stop_tri)
+
+
+def test_ray_engine_falls_back_without_embree(monkeypatch: pytest.MonkeyPatch) -> None:
+    from lidarmap.sim import raycast
+
+    monkeypatch.setattr(raycast, "_embree_available", lambda: False)
+    monkeypatch.delenv(raycast.ENGINE_ENV, raising=False)
+    assert raycast.ray_engine() == "triangle"
+    monkeypatch.setenv(raycast.ENGINE_ENV, "embree")
+    with pytest.raises(ConfigError, match="LIDARMAP_RAY_ENGINE=embree but embreex is not installed"):
+        raycast.ray_engine()
+    monkeypatch.setenv(raycast.ENGINE_ENV, "optix")
+    with pytest.raises(ConfigError, match=r"LIDARMAP_RAY_ENGINE='optix': use one of auto, embree, triangle"):
+        raycast.ray_engine()
+    monkeypatch.setenv(raycast.ENGINE_ENV, "triangle")
+    box = build_city(SimParams(seed=3, buildings=2, campaigns=0)).scene([])
+    tracer = raycast.Tracer(box)
+    assert tracer.engine == "triangle"
+    tri, rng = tracer.first_hit(np.array([[0.0, 0.0, 500.0]]), np.array([[0.0, 0.0, -1.0]]))
+    assert tri[0] >= 0 and 380 < rng[0] < 420  # the ground (z ~ 84-112) seen from z = 500
+
+
+# --- hard family ---------------------------------------------------------------------------------------------------
+
+HARD = SimParams(seed=DEV_SEEDS[1], family="hard", buildings=2, campaigns=1)
+
+
+@pytest.fixture(scope="module")
+def hard(tmp_path_factory: pytest.TempPathFactory):
+    out = tmp_path_factory.mktemp("hard") / "scene"
+    return simulate(out, HARD), load_truth(out)
+
+
+def _setbacks_sills_glass(seed: int) -> tuple[np.ndarray, np.ndarray, float]:
+    city = build_hard_city(SimParams(seed=seed, family="hard"))
+    houses = [b for b in city.buildings if b.status == "existing"]
+    setbacks = np.array([np.min(np.abs(b.ring[:, 1] - city.streets[0].y)) - BUILDING_LINE for b in houses])
+    sills = np.array([e.t0 - (b.floor_z - f.origin[2]) for b in houses for f in b.facades for e in f.elements
+                      if e.kind == "window" and e.subtype == "window" and e.t0 < b.floor_z - f.origin[2] + 2.0])
+    windows = [e for b in houses for f in b.facades for e in f.elements if e.kind == "window"]
+    return setbacks, sills, float(np.mean([e.glazing == "glass" for e in windows]))
+
+
+def test_hard_family_is_randomised_across_seeds():
+    stats = [_setbacks_sills_glass(seed) for seed in DEV_SEEDS]
+    for setbacks, sills, glass in stats:
+        assert setbacks.min() >= -1e-9 and setbacks.max() <= 5.0 + 1e-9
+        assert len(sills) > 3 and sills.min() >= 0.1 - 1e-9 and sills.max() <= 1.2 + 1e-9
+        assert 0.2 < glass < 0.8
+    assert len({round(float(np.mean(s)), 2) for s, _, _ in stats}) == len(stats)  # set-backs differ per seed
+    assert len({round(float(np.mean(s)), 2) for _, s, _ in stats}) == len(stats)  # and so do sills
+    assert len({round(g, 3) for _, _, g in stats}) == len(stats)  # and the share of glazed windows
+    assert np.ptp(np.concatenate([s for s, _, _ in stats])) > 2.5
+
+
+def test_hard_family_content(hard):
+    _, truth = hard
+    elements = list(truth.elements.values())
+    glazings = {e.subtype: set() for e in elements}
+    for e in truth.doc["buildings"]:
+        for f in e["facades"]:
+            for el in f["elements"]:
+                glazings[el["subtype"]].add(el.get("glazing", ""))
+    assert {"glass", "curtain", "open"} <= glazings["window"]
+    fractions = [el["return_fraction"] for b in truth.doc["buildings"] for f in b["facades"]
+                 for el in f["elements"] if el.get("glazing") == "glass"]
+    assert fractions and min(fractions) >= HARD.glass_return_min and max(fractions) <= HARD.glass_return_max
+    blank_sides = [f for f in truth.facades.values() if not f.street_facing and not f.elements]
+    assert blank_sides  # some side walls have no opening at all
+    labels = truth.labels("mls_1")
+    cloud = read_las(truth.campaigns[0].laz)
+    glass = labels.is_kind("glass")
+    assert glass.sum() > 100  # panes return part of the pulses ...
+    wall = labels.is_kind("wall")
+    assert np.median(cloud.attrs["intensity"][glass]) < 0.3 * np.median(cloud.attrs["intensity"][wall])  # weakly
+
+
+def test_glass_returns_its_fraction_of_pulses():
+    """A pane returning 30 % of pulses in front of an opaque wall: 30 % glass returns, the rest from the wall."""
+    soup = Soup()
+    pane = quads(np.array([[[0, -1, -1], [0, 1, -1], [0, 1, 1], [0, -1, 1]]], float))
+    soup.add(pane, Labels(classification=6, kind=KIND["glass"], behaviour=GLASS, return_fraction=0.3))
+    soup.add(pane + [2.0, 0, 0], Labels(classification=6, kind=KIND["wall"]))
+    scene = soup.build()
+    n = 20000
+    dirs = np.column_stack([np.ones(n), np.random.default_rng(0).uniform(-0.12, 0.12, (n, 2))])
+    returns = Tracer(scene, seed=5).trace(np.tile([-5.0, 0, 0], (n, 1)), dirs, max_range=50.0)
+    assert len(returns.ray) == n and len(np.unique(returns.ray)) == n  # one return per pulse
+    share = np.mean(scene.kind[returns.tri] == KIND["glass"])
+    assert abs(share - 0.3) < 0.015
+    again = Tracer(scene, seed=5).trace(np.tile([-5.0, 0, 0], (n, 1)), dirs, max_range=50.0)
+    assert np.array_equal(again.tri, returns.tri)  # the draws come from the seed
+
+
+def test_hard_gps_drift_is_bounded_and_smooth(hard):
+    _, truth = hard
+    campaign = truth.campaigns[0]
+    doc = truth.doc["campaigns"][0]
+    samples = np.array(doc["gps_drift"]["samples"])
+    horizontal = np.linalg.norm(samples[:, 1:3], axis=1)
+    assert 0.5 * HARD.gps_drift_horizontal - 1e-9 <= horizontal.max() <= HARD.gps_drift_horizontal + 1e-9
+    assert np.abs(samples[:, 3]).max() <= HARD.gps_drift_vertical + 1e-9
+    assert np.abs(np.diff(samples[:, 1:], axis=0)).max() < 0.05  # smooth: < 5 cm per second
+    traj = read_trajectory(campaign.trajectory)
+    drift = np.column_stack([np.interp(traj.time, samples[:, 0], samples[:, k]) for k in (1, 2, 3)])
+    height = doc["setup"]["sensor_height"]
+    undone = campaign.register(traj.xyz - drift)
+    assert np.abs(undone[:, 2] - truth.terrain_height(undone[:, :2]) - height).max() < 1e-6
+    kept = campaign.register(traj.xyz)  # the delivered trajectory is off by the drift
+    assert np.abs(kept[:, 2] - truth.terrain_height(kept[:, :2]) - height).max() > 0.02
+
+
+def test_hard_outputs_have_the_standard_formats(hard, sim):
+    result, truth = hard
+    std_cloud = read_las(sim[1].campaigns[0].laz)
+    cloud = read_las(truth.campaigns[0].laz)
+    assert set(cloud.attrs) == set(std_cloud.attrs) and cloud.crs == std_cloud.crs
+    assert np.all(np.diff(cloud.attrs["gps_time"]) >= 0)
+    traj = read_trajectory(truth.campaigns[0].trajectory)
+    assert traj.rpy is not None and traj.time[0] <= cloud.attrs["gps_time"].min()
+    fps = read_footprints(result.footprints, crs=CRS.from_epsg(32632))
+    assert len(fps) == len(truth.buildings)
+    assert {e.kind for e in truth.elements.values()} == {"window", "door", "structure"}
+    assert truth.doc["family"] == "hard" and truth.doc["params"]["family"] == "hard"
+
+
+def test_hard_family_is_deterministic(hard, tmp_path):
+    result, _ = hard
+    again = simulate(tmp_path / "again", HARD)
+    for path in (result.mls[0], result.trajectories[0], result.truth_dir / "scene.json",
+                 result.truth_dir / "mls_1_labels.npz", result.truth_dir / "visibility_1.npz"):
+        rel = path.relative_to(result.out_dir)
+        assert path.read_bytes() == (again.out_dir / rel).read_bytes(), rel
+
+
+def test_tests_never_use_the_evaluation_seeds():
+    reserved = {str(s) for s in EVAL_SEEDS}
+    for path in Path(__file__).parent.glob("*.py"):
+        numbers = set(re.findall(r"\b\d{4}\b", path.read_text(encoding="utf-8")))
+        assert not numbers & reserved, path.name
+
+
+def test_cli_simulate_rejects_an_unknown_family(tmp_path: Path):
+    bad = CliRunner().invoke(app, ["simulate", str(tmp_path / "bad"), "--family", "easy"])
+    assert bad.exit_code == 2
+    assert "family must be one of standard, hard" in bad.output and "Traceback" not in bad.output
+    assert not (tmp_path / "bad" / "als.laz").exists()
+
+
+def test_hard_campaigns_differ_in_lane_speed_height_rate_and_scanner():
+    setups = [campaign_setup(SimParams(seed=seed, family="hard"), i) for seed in DEV_SEEDS for i in (1, 2, 3)]
+    for s in setups:
+        assert 0.6 <= abs(s.lane_offset) <= 3.2 and 4.0 <= s.params.mls_speed <= 10.0
+        assert 1.9 <= s.params.mls_sensor_height <= 3.4 and 60 <= s.params.mls_rate <= 140
+        yaws = np.abs(s.yaws)
+        assert (len(yaws) == 1 and 5 <= yaws[0] <= 20) or (len(yaws) == 2 and s.yaws[0] == -s.yaws[1]
+                                                            and 30 <= yaws[0] <= 45)
+    assert {len(s.yaws) for s in setups} == {1, 2}  # both scanner set-ups occur
+    for name in ("mls_speed", "mls_sensor_height", "mls_rate"):
+        assert len({getattr(s.params, name) for s in setups}) >= len(setups) - 2  # rates are whole Hz
+    assert len({np.sign(s.lane_offset) for s in setups}) == 2
+
+
+def test_pulse_spacing_on_a_wall_matches_neighbouring_pulses():
+    """The observability rule's in-profile spacing equals the distance between two traced neighbouring pulses."""
+    rng = np.random.default_rng(3)
+    n = np.array([1.0, 0.0, 0.0])  # wall x = 0, seen from x < 0
+    for _ in range(20):
+        yaw, elev, step = rng.uniform(-1.2, 1.2), rng.uniform(-0.6, 0.6), np.radians(0.4)
+        h = np.array([np.sin(yaw), np.cos(yaw), 0.0])  # a vertical profile plane
+        r = np.cos(elev) * np.array([np.cos(yaw), -np.sin(yaw), 0.0]) + np.sin(elev) * np.array([0.0, 0.0, 1.0])
+        origin = np.array([-5.0, 0.0, 0.0])
+        hit = origin + (-origin[0] / r[0]) * r
+        c, s = np.cos(step), np.sin(step)
+        r2 = r * c + np.cross(h, r) * s  # the next pulse of the profile
+        hit2 = origin + (-origin[0] / r2[0]) * r2
+        dist = np.linalg.norm(hit - origin)
+        expected = pulse_spacing(r[None], h[None], n, np.array([dist]), step)[0]
+        assert np.linalg.norm(hit2 - hit) == pytest.approx(expected, rel=0.02)

@@ -64,8 +64,10 @@ def run_dir(tmp_path_factory) -> Path:
         folder.mkdir(parents=True)
         write_mesh(folder / "mesh.ply", mesh)
         records.append({"id": name, "output_points": 100, "planes": 6})
-    (out / "summary.json").write_text(json.dumps({"crs": CRS_WKT, "records": records}), encoding="utf-8")
-    write_run_glb(out, records, (), CRS_WKT)
+    folders = {r["id"]: f"buildings/{r['id']}" for r in records}
+    (out / "summary.json").write_text(json.dumps({"crs": CRS_WKT, "records": records, "folders": folders}),
+                                      encoding="utf-8")
+    write_run_glb(out, records, {r["id"]: r["id"] for r in records}, (), CRS_WKT)
     return out
 
 

@@ -7,7 +7,8 @@
       -> per group of neighbouring buildings, one task (this process, or a dask worker): segmentation of their
          points with the kept points of the buildings around them as context; then per building densify / flatten
          (order configurable) -> voxelize (majority label) -> meshes
-      -> this process writes OUT/buildings/<id>/, OUT/summary.json, OUT/buildings.city.json
+      -> this process writes OUT/buildings/<id>/, OUT/summary.json, OUT/buildings.city.json,
+         OUT/buildings.gpkg (every footprint with its status, for a GIS)
 
 Memory is bounded by the largest group plus its context, a chunk of input and a few tasks in flight, not by the
 input size (docs/cluster.md).
@@ -45,8 +46,10 @@ import trimesh
 from pyproj import CRS
 
 from lidarmap._version import __version__
+from lidarmap.aerial.coverage import CoverageParams, footprint_coverage
 from lidarmap.aerial.densify import DensifyParams, densify
 from lidarmap.aerial.flatten import FlattenParams, flatten_points
+from lidarmap.aerial.gislayer import write_buildings_gpkg
 from lidarmap.aerial.mesh import MeshParams, surface_mesh, voxel_mesh
 from lidarmap.aerial.prep import (
     BuildingPoints,
@@ -59,6 +62,7 @@ from lidarmap.aerial.voxel import VoxelParams, voxelize
 from lidarmap.config import check_params
 from lidarmap.core import Footprints, PointCloud, VoxelGrid
 from lidarmap.errors import ConfigError, InputError
+from lidarmap.export.planar import PlanarParams
 from lidarmap.executor import (
     TaskFailure,
     building_seed,
@@ -69,7 +73,8 @@ from lidarmap.executor import (
 from lidarmap.io.atomic import atomic_dir, write_text_atomic
 from lidarmap.io.las import write_las
 from lidarmap.io.meshfile import write_mesh
-from lidarmap.io.prepdir import building_file_name
+from lidarmap.io.outdir import abandon_marked_dir, claim_out_dir, start_marked_dir
+from lidarmap.io.prepdir import unique_stems
 from lidarmap.io.tiles import read_tiles, scan_tiles
 from lidarmap.io.voxels import write_vox, write_voxels
 from lidarmap.segment.features import BUILDING_CLASS
@@ -179,6 +184,8 @@ class PipelineConfig:
     flatten: FlattenParams = FlattenParams()
     voxel: VoxelParams = VoxelParams()
     mesh: MeshParams = MeshParams()
+    coverage: CoverageParams = CoverageParams()
+    lod22: PlanarParams = PlanarParams()
 
     def result_params(self) -> dict[str, Any]:
         """The parameters that shape results (how the work is spread over machines does not)."""
@@ -276,6 +283,21 @@ def flatten_cloud(cloud: PointCloud, params: FlattenParams, seed: int = 0,
 STAGE_FUNCTIONS = {"densify": densify_cloud, "flatten": flatten_cloud}
 
 
+def densify_seeds(cloud: PointCloud, classes_in: np.ndarray) -> np.ndarray:
+    """The building points densification may multiply: all but those the model added (not class 6 in the input)
+    that are not the last return of a multi-return pulse -- a pulse that goes on after hitting them went through
+    something porous, a crown that slipped past the vegetation filter, and must not be multiplied. (Only the
+    input points: points added by an earlier stage carry the return fields of their source point.)"""
+    seeds = building_mask(cloud)
+    rn, nr = cloud.attrs.get("return_number"), cloud.attrs.get("number_of_returns")
+    if rn is None or nr is None:
+        return seeds
+    n_in = len(classes_in)
+    through = np.zeros(len(cloud), bool)
+    through[:n_in] = (np.asarray(classes_in) != BUILDING_CLASS) & (nr[:n_in] > 1) & (rn[:n_in] < nr[:n_in])
+    return seeds & ~through
+
+
 def process_building(bp: BuildingPoints, probability: np.ndarray, config: PipelineConfig) -> BuildingOutput:
     """Densify/flatten, voxelize and mesh one building whose points were segmented (``probability``, per point).
 
@@ -299,7 +321,8 @@ def process_building(bp: BuildingPoints, probability: np.ndarray, config: Pipeli
     for stage in run.stages:
         tick = time.perf_counter()
         params = config.densify if stage == "densify" else config.flatten
-        cloud, stage_stats = STAGE_FUNCTIONS[stage](cloud, params, seed)
+        selection = densify_seeds(cloud, classes_in) if stage == "densify" else None
+        cloud, stage_stats = STAGE_FUNCTIONS[stage](cloud, params, seed, selection)
         stage_stats.pop("densify_stats", None)
         stage_stats.pop("plane_list", None)
         stats.update(stage_stats)
@@ -312,7 +335,14 @@ def process_building(bp: BuildingPoints, probability: np.ndarray, config: Pipeli
     tick = time.perf_counter()
     building = building_mask(cloud)
     rgb = cloud.rgb8()
-    meshes = _meshes(cloud.xyz[building], None if rgb is None else rgb[building], bp, config, cloud.crs)
+    cover = footprint_coverage(cloud.xyz[building, :2], bp.footprint, config.coverage)
+    if cover.outline.is_empty:
+        raise InputError(f"building {bp.id}: its building points cover none of its footprint; nothing to model")
+    stats.update(coverage=round(cover.share, 3), status=cover.status)
+    if cover.partial:  # model only what was measured; the outline goes to the CityJSON's LoD 1 block
+        stats["covered_outline"] = cover.outline.wkt
+    meshes = _meshes(cloud.xyz[building], None if rgb is None else rgb[building], bp, config, cloud.crs,
+                     cover.outline)
     seconds["mesh"] = time.perf_counter() - tick
     seconds["total"] = time.perf_counter() - started
     stats.update(voxels=len(voxels.ijk), voxel_size=voxels.size, seconds={k: round(v, 3) for k, v in seconds.items()},
@@ -333,11 +363,11 @@ def building_voxels(cloud: PointCloud, params: VoxelParams) -> VoxelGrid:
 
 
 def _meshes(xyz: np.ndarray, rgb: np.ndarray | None, bp: BuildingPoints, config: PipelineConfig,
-            crs: CRS | None) -> dict[str, trimesh.Trimesh]:
+            crs: CRS | None, outline: Any) -> dict[str, trimesh.Trimesh]:
     fine = voxelize(xyz, None, rgb, dataclasses.replace(config.voxel, size=config.run.mesh_voxel_size,
                                                          keep_labels=()), crs=crs)
     ground = bp.ground_z if math.isfinite(bp.ground_z) else None
-    return {"surface": surface_mesh(xyz, config.mesh, footprint=bp.footprint, ground_z=ground, rgb=rgb),
+    return {"surface": surface_mesh(xyz, config.mesh, footprint=outline, ground_z=ground, rgb=rgb),
             "voxels": voxel_mesh(fine, config.mesh)}
 
 
@@ -345,9 +375,10 @@ def _meshes(xyz: np.ndarray, rgb: np.ndarray | None, bp: BuildingPoints, config:
 # Writing and resuming
 
 
-def building_dir(out_dir: Path, building_id: str) -> Path:
-    """``OUT/buildings/<id>``, the id made safe for file names."""
-    return out_dir / "buildings" / building_file_name(building_id).removesuffix(".laz")
+def building_dir(out_dir: Path, stem: str) -> Path:
+    """``OUT/buildings/<stem>``: the building's id made safe for file names and unique in the run
+    (:func:`lidarmap.io.prepdir.unique_stems`; the id -> folder map is in summary.json)."""
+    return out_dir / "buildings" / stem
 
 
 def building_fingerprint(bp: BuildingPoints, config: PipelineConfig, model_digest: str, context_digest: str = ""
@@ -366,30 +397,36 @@ def building_fingerprint(bp: BuildingPoints, config: PipelineConfig, model_diges
     return h.hexdigest()
 
 
-def finished(out_dir: Path, building_id: str, fingerprint: str) -> dict[str, Any] | None:
+def finished(out_dir: Path, building_id: str, stem: str, fingerprint: str) -> dict[str, Any] | None:
     """The stats of a building finished by an earlier run with the same fingerprint, else ``None``."""
-    path = building_dir(out_dir, building_id) / "building.json"
+    path = building_dir(out_dir, stem) / "building.json"
     try:
         record = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
+    if not isinstance(record, dict) or record.get("id") != building_id:
+        return None
     return record if record.get("fingerprint") == fingerprint else None
 
 
-def write_building(out_dir: Path, output: BuildingOutput, fingerprint: str, mesh_kind: str) -> dict[str, Any]:
-    """Write one building's folder whole (temporary folder renamed into place); returns its building.json record."""
-    record = {"id": output.id, "fingerprint": fingerprint, "mesh": mesh_kind, **output.stats}
-    with atomic_dir(building_dir(out_dir, output.id)) as tmp:
+def write_building(out_dir: Path, output: BuildingOutput, fingerprint: str, mesh_kind: str,
+                   stem: str) -> dict[str, Any]:
+    """Write one building's folder ``buildings/<stem>`` whole (temporary folder renamed into place); returns its
+    building.json record."""
+    record = {"id": output.id, "folder": f"buildings/{stem}", "fingerprint": fingerprint, "mesh": mesh_kind,
+              **output.stats}
+    with atomic_dir(building_dir(out_dir, stem)) as tmp:
         write_las(tmp / "points.laz", output.cloud)
         write_voxels(tmp / "voxels.npz", output.voxels)
         if len(output.voxels.ijk):
             write_vox(tmp / "voxels.vox", output.voxels)
         main = output.meshes[mesh_kind]
-        write_mesh(tmp / "mesh.ply", main)
-        write_mesh(tmp / "mesh.obj", main)
+        crs = output.cloud.crs
+        write_mesh(tmp / "mesh.ply", main, crs)
+        write_mesh(tmp / "mesh.obj", main, crs)
         for kind, mesh in output.meshes.items():
             if kind != mesh_kind:
-                write_mesh(tmp / f"mesh_{kind}.ply", mesh)
+                write_mesh(tmp / f"mesh_{kind}.ply", mesh, crs)
         write_text_atomic(tmp / "building.json", json.dumps(record, indent=2, default=_json_default))
     return record
 
@@ -516,7 +553,7 @@ def _jobs(spooled: SpooledPrep, groups: list[list[int]], out: Path, config: Pipe
         context = spooled.context(members, config.run.context) if config.run.context > 0 else None
         digest = _context_digest([b.cloud for b in buildings] + [context])
         prints = [building_fingerprint(b, config, model_digest, digest) for b in buildings]
-        earlier = [finished(out, b.id, fp) for b, fp in zip(buildings, prints)]
+        earlier = [finished(out, b.id, plan["stems"][b.id], fp) for b, fp in zip(buildings, prints)]
         for k, b, rec in zip(members, buildings, earlier):
             if rec is not None:
                 plan["records"][k] = rec
@@ -534,16 +571,16 @@ def _worker_config(config: PipelineConfig) -> PipelineConfig:
     return dataclasses.replace(config, segment=dataclasses.replace(config.segment, threads=1))
 
 
+#: Kind of the output-folder marker of a run (:mod:`lidarmap.io.outdir`).
+KIND = "run"
+#: What a run writes into its output folder (listed in the folder's marker).
+RUN_OUTPUTS = ("buildings", "summary.json", "buildings.city.json")
+
+
 def check_out_dir(out_dir: str | Path) -> Path:
-    """Refuse an output path that is a file, or a non-empty folder that holds no earlier run (nothing to resume)."""
-    out = Path(out_dir)
-    if out.exists():
-        if not out.is_dir():
-            raise InputError("output exists and is not a folder", out)
-        ours = any(out.iterdir()) and ((out / "summary.json").exists() or (out / "buildings").is_dir())
-        if not ours and any(not p.name.startswith(WORK_PREFIX) for p in out.iterdir()):
-            raise InputError("output folder is not empty and holds no earlier run to resume; choose another -o", out)
-    return out
+    """Refuse an output path a run may not write (:func:`lidarmap.io.outdir.claim_out_dir`): a file, a non-empty
+    folder lidarmap did not write, another command's output. An earlier run's folder is resumed."""
+    return claim_out_dir(out_dir, KIND)
 
 
 #: Prefix of the spool folder a run keeps in its output folder while it runs (a killed run's is removed by the next).
@@ -565,9 +602,8 @@ def run_pipeline(tiles: Sequence[str | Path], footprints: Footprints, out_dir: s
     """
 
     started = time.perf_counter()
-    out = check_out_dir(out_dir)
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
+    out = Path(out_dir)
+    created = start_marked_dir(out, KIND, RUN_OUTPUTS)  # marked before anything is written: a killed run resumes
     _remove_stale_work(out)
     run = config.run
     work = Path(tempfile.mkdtemp(prefix=WORK_PREFIX, dir=out))  # the spool: beside the output, on its disk
@@ -575,7 +611,8 @@ def run_pipeline(tiles: Sequence[str | Path], footprints: Footprints, out_dir: s
         spooled = stream_tiles(tiles, footprints, config.prep, crs, work_dir=work,
                                progress=(lambda n: report("read", n, 0)) if report else None)
         model, model_digest = load_segmenter(run)
-        plan: dict[str, Any] = {"records": {}, "skipped": [], "todo": []}
+        stems = unique_stems(e.id for e in spooled.entries)
+        plan: dict[str, Any] = {"records": {}, "skipped": [], "todo": [], "stems": stems}
         failed: dict[str, str] = {}
         processed: list[str] = []
         jobs = _jobs(spooled, building_groups(spooled, run.group_size), out, _worker_config(config), model_digest,
@@ -592,7 +629,7 @@ def run_pipeline(tiles: Sequence[str | Path], footprints: Footprints, out_dir: s
                     failed[spooled.entries[k].id] = result.reason
                     log.warning("building %s failed: %s", spooled.entries[k].id, result.reason)
                 else:
-                    plan["records"][k] = write_building(out, result, fingerprint, run.mesh)
+                    plan["records"][k] = write_building(out, result, fingerprint, run.mesh, stems[result.id])
                     processed.append(result.id)
             done += sum(result is not None for result in results)
             if report:
@@ -603,14 +640,14 @@ def run_pipeline(tiles: Sequence[str | Path], footprints: Footprints, out_dir: s
                            skipped=sorted(plan["skipped"], key=order),
                            failed={k: failed[k] for k in sorted(failed, key=order)},
                            dropped=dict(spooled.dropped), prep=spooled, seconds=time.perf_counter() - started)
-        _write_summary(out, result, config)
-        _write_cityjson(out, result)
-        _write_glb(out, result)
+        _write_summary(out, result, config, stems)
+        _write_cityjson(out, result, config, stems)
+        write_buildings_gpkg(result, footprints, lambda out_dir, fid: building_dir(out_dir, stems[fid]))
+        _write_glb(out, result, stems)
         return result
     finally:
         shutil.rmtree(work, ignore_errors=True)
-        if created and out.is_dir() and not any(out.iterdir()):  # refused input: leave no empty folder
-            out.rmdir()
+        abandon_marked_dir(out, created)  # refused input: leave no folder behind
 
 
 def _entry_order(spooled: Any) -> Callable[[str], int]:
@@ -618,20 +655,25 @@ def _entry_order(spooled: Any) -> Callable[[str], int]:
     return lambda building_id: position[building_id]
 
 
-def _write_summary(out: Path, result: RunResult, config: PipelineConfig) -> None:
+def _write_summary(out: Path, result: RunResult, config: PipelineConfig, stems: dict[str, str]) -> None:
     prep = result.prep
     summary = {
         "lidarmap": __version__, "tiles": prep.sources, "crs": None if prep.crs is None else prep.crs.to_wkt(),
         "points_read": prep.points_read, "points_kept": prep.points_kept, "buildings": len(result.records),
         "processed": result.processed, "skipped_finished": result.skipped, "failed": result.failed,
-        "dropped_footprints": result.dropped, "seconds": round(result.seconds, 3),
+        "dropped_footprints": result.dropped, "repaired_footprints": prep.repaired, "seconds": round(result.seconds, 3),
+        "partial": [r["id"] for r in result.records if r.get("status") == "partial"],
         "params": config.result_params(), "records": result.records,
+        "folders": {e.id: f"buildings/{stems[e.id]}" for e in prep.entries},
     }
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2, default=_json_default))
 
 
-def _write_cityjson(out: Path, result: RunResult) -> None:
-    """``buildings.city.json``, streamed: one building's mesh in memory at a time."""
+def _write_cityjson(out: Path, result: RunResult, config: PipelineConfig, stems: dict[str, str]) -> None:
+    """``buildings.city.json``, streamed: one building's mesh in memory at a time. A partial building's LoD 1 block
+    stands on the covered part of its footprint (``covered_outline``), as its mesh does."""
+    import shapely
+
     from lidarmap.export.cityjson import AerialBuilding, write_aerial_cityjson
 
     by_id = {e.id: e for e in result.prep.entries}
@@ -639,11 +681,13 @@ def _write_cityjson(out: Path, result: RunResult) -> None:
     def buildings() -> Iterator[AerialBuilding]:
         for record in result.records:
             e = by_id[record["id"]]
-            mesh = trimesh.load(building_dir(out, e.id) / "mesh.ply", process=False)
+            mesh = trimesh.load(building_dir(out, stems[e.id]) / "mesh.ply", process=False)
             attributes = {**e.properties, "lidarmap_points": record["output_points"],
                           "lidarmap_building_points": record["building_points"], "lidarmap_voxels": record["voxels"],
-                          "lidarmap_height_source": e.height_source}
-            yield AerialBuilding(id=e.id, footprint=e.footprint, ground_z=e.ground_z, height=e.height,
+                          "lidarmap_height_source": e.height_source,
+                          "lidarmap_coverage": record.get("coverage"), "lidarmap_status": record.get("status")}
+            outline = record.get("covered_outline")
+            yield AerialBuilding(id=e.id, footprint=shapely.from_wkt(outline) if outline else e.footprint, ground_z=e.ground_z, height=e.height,
                                  mesh_vertices=np.asarray(mesh.vertices, dtype=np.float64),
                                  mesh_faces=np.asarray(mesh.faces), attributes=attributes)
 
@@ -652,25 +696,26 @@ def _write_cityjson(out: Path, result: RunResult) -> None:
     translate = ([math.floor(min(e.bounds[0] for e in entries)), math.floor(min(e.bounds[1] for e in entries)),
                   math.floor(min(grounds, default=0.0))] if entries else [0.0, 0.0, 0.0])
     crs_wkt = result.prep.crs.to_wkt() if result.prep.crs is not None else ""
-    write_aerial_cityjson(out / "buildings.city.json", buildings(), crs_wkt, translate)
+    write_aerial_cityjson(out / "buildings.city.json", buildings(), crs_wkt, translate, planar=config.lod22)
 
 
-def _write_glb(out: Path, result: RunResult) -> None:
+def _write_glb(out: Path, result: RunResult, stems: dict[str, str]) -> None:
     crs_wkt = result.prep.crs.to_wkt() if result.prep.crs is not None else ""
-    write_run_glb(out, result.records, result.prep.entries, crs_wkt)
+    write_run_glb(out, result.records, stems, result.prep.entries, crs_wkt)
 
 
-def run_glb_buildings(out_dir: str | Path, records: Sequence[dict[str, Any]], entries: Sequence[Any] = ()
-                      ) -> Iterator[Any]:
+def run_glb_buildings(out_dir: str | Path, records: Sequence[dict[str, Any]], stems: dict[str, str],
+                      entries: Sequence[Any] = ()) -> Iterator[Any]:
     """A run's buildings for :mod:`lidarmap.export.gltf`, one mesh.ply loaded at a time: their building.json
-    ``records``; prep ``entries`` (when at hand) add footprint attributes and heights."""
+    ``records``, ``stems`` their folder names (summary.json's ``folders``); prep ``entries`` (when at hand) add
+    footprint attributes and heights."""
     from lidarmap.export.cityjson import AerialBuilding
     from lidarmap.export.gltf import aerial_glb_building
 
     by_id = {e.id: e for e in entries}
     for record in records:
         e = by_id.get(record["id"])
-        mesh = trimesh.load(building_dir(Path(out_dir), record["id"]) / "mesh.ply", process=False)
+        mesh = trimesh.load(building_dir(Path(out_dir), stems[record["id"]]) / "mesh.ply", process=False)
         attributes = {"points": record.get("output_points"), "planes": record.get("planes")}
         if e is not None:
             attributes.update({**e.properties, "height_source": e.height_source})
@@ -679,12 +724,12 @@ def run_glb_buildings(out_dir: str | Path, records: Sequence[dict[str, Any]], en
             math.nan if e is None else e.height, mesh.vertices, mesh.faces, attributes), record)
 
 
-def write_run_glb(out_dir: str | Path, records: Sequence[dict[str, Any]], entries: Sequence[Any] = (),
-                  crs_wkt: str = "") -> Path:
+def write_run_glb(out_dir: str | Path, records: Sequence[dict[str, Any]], stems: dict[str, str],
+                  entries: Sequence[Any] = (), crs_wkt: str = "") -> Path:
     """``OUT/buildings.glb``: a run's meshes for viewers (glTF 2.0, local origin; :mod:`lidarmap.export.gltf`)."""
     from lidarmap.export.gltf import write_glb
 
-    return write_glb(Path(out_dir) / "buildings.glb", run_glb_buildings(out_dir, records, entries), crs_wkt,
+    return write_glb(Path(out_dir) / "buildings.glb", run_glb_buildings(out_dir, records, stems, entries), crs_wkt,
                      title=RUN_GLB_TITLE)
 
 

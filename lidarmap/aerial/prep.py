@@ -192,13 +192,15 @@ class PrepSummary:
     """What prep found, whether the points are loaded (:class:`PrepResult`) or spooled (:class:`SpooledPrep`).
 
     ``dropped`` maps footprint ids to the reason they produced no building ("under construction (status ...)",
-    "lower than 3 m (...)", "no points within 5 m", "no points inside the footprint").
+    "lower than 3 m (...)", "no points within 5 m", "no points inside the footprint"), and the footprints file's
+    features that gave no polygon ("null geometry", "zero area", ...; :func:`lidarmap.io.footprints.read_footprints`).
     """
 
     dropped: dict[str, str]
     frame: LocalFrame
     crs: CRS | None
     params: PrepParams
+    repaired: list[str] = dataclasses.field(default_factory=list)  # ids of invalid footprints repaired (make_valid)
     points_read: int = 0
     points_kept: int = 0
     footprints: int = 0
@@ -596,7 +598,7 @@ def _building_entry(acc: _Accumulator, i: int, dropped: dict[str, str]) -> Build
 
 
 def _finish(acc: _Accumulator, crs: CRS | None, sources: list[str], seconds: float) -> "SpooledPrep":
-    dropped: dict[str, str] = {}
+    dropped: dict[str, str] = dict(acc.footprints.rejected)
     entries = [e for e in (_building_entry(acc, i, dropped) for i in range(len(acc.footprints))) if e is not None]
     if entries:
         zmin = min(float(acc.points.get(e.key, ["xyz"])["xyz"][:, 2].min()) for e in entries)
@@ -610,7 +612,7 @@ def _finish(acc: _Accumulator, crs: CRS | None, sources: list[str], seconds: flo
     if acc.params.quantize_rgb and {"red", "green", "blue"} <= set(names):
         rgb16 = any(int(acc.points.get(e.key, [c])[c].max(initial=0)) > 255 for e in entries
                     for c in ("red", "green", "blue"))
-    return SpooledPrep(entries=entries, dropped=dropped, frame=frame, crs=crs, params=acc.params,
+    return SpooledPrep(entries=entries, dropped=dropped, repaired=list(acc.footprints.repaired), frame=frame, crs=crs, params=acc.params,
                        spool=acc.points, names=names, extra_dims=[d for d in (acc.extra_dims or []) if d in names],
                        rgb16=rgb16, points_read=acc.points_read, points_kept=int(sum(e.points for e in entries)),
                        footprints=len(acc.footprints), sources=sources, footprint_source=acc.footprints.source,
@@ -690,7 +692,7 @@ class SpooledPrep(PrepSummary):
     def materialise(self) -> PrepResult:
         """Every building loaded into a :class:`PrepResult` (memory: all kept points)."""
         return PrepResult(buildings=[self.load(k) for k in range(len(self.entries))], dropped=dict(self.dropped),
-                          frame=self.frame, crs=self.crs, params=self.params, points_read=self.points_read,
+                          repaired=list(self.repaired), frame=self.frame, crs=self.crs, params=self.params, points_read=self.points_read,
                           points_kept=self.points_kept, footprints=self.footprints, sources=list(self.sources),
                           footprint_source=self.footprint_source, seconds=self.seconds)
 

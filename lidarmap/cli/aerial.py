@@ -21,8 +21,11 @@ from lidarmap.cli.common import (
     CrsOption,
     FootprintsOption,
     IdFieldOption,
+    JsonOption,
     SeedOption,
+    echo_json,
     handle_errors,
+    json_mode,
     params_from,
     progress,
     table_console,
@@ -30,7 +33,8 @@ from lidarmap.cli.common import (
 from lidarmap.errors import ConfigError, InputError
 
 InputsArgument = typer.Argument(..., help="LAS/LAZ files (their class-6 points are the building).")
-OutOption = typer.Option(..., "--out", "-o", help="Output folder (created).", file_okay=False)
+OutOption = typer.Option(..., "--out", "-o", help="Output folder (created; an empty folder or an earlier output of "
+                         "the same command: files of yours there are never replaced).", file_okay=False)
 
 
 def register(app: typer.Typer) -> None:
@@ -52,14 +56,40 @@ def _check_inputs(paths: list[Path]) -> None:
         seen.add(path.resolve())
 
 
-def _each(paths: list[Path], description: str, work: Callable[[Path], Any]) -> list[Any]:
-    """Run ``work`` on every input under a progress bar; results in input order."""
+def output_stem(path: Path) -> str:
+    """The name an input's outputs start with: its file name without ``.laz``/``.las``/``.voxels.npz``."""
+    name = path.name
+    return name.removesuffix(".voxels.npz") if name.endswith(".voxels.npz") else path.stem
+
+
+def _check_stems(paths: list[Path]) -> None:
+    """Refuse inputs whose outputs would have the same name (``A/points.laz`` and ``B/points.laz``: the second
+    would replace the first), naming both."""
+    seen: dict[str, Path] = {}
+    for path in paths:
+        stem = output_stem(path).lower()
+        if stem in seen:
+            raise InputError(f"{seen[stem]} and {path} would write outputs of the same name "
+                             f"'{output_stem(path)}'; rename one or run them into separate -o folders")
+        seen[stem] = path
+
+
+def _each(paths: list[Path], description: str, work: Callable[[Path, Path], Any], out_dir: Path,
+          kind: str) -> list[Any]:
+    """Run ``work(input, output_prefix)`` on every input under a progress bar; results in input order.
+
+    Outputs go to a temporary folder published into ``out_dir`` at the end (:func:`lidarmap.io.outdir.atomic_out_dir`):
+    an error leaves ``out_dir`` as it was; files of the user's there are never replaced.
+    """
+    from lidarmap.io.outdir import atomic_out_dir
+
     _check_inputs(paths)
+    _check_stems(paths)
     results = []
-    with progress() as bar:
+    with atomic_out_dir(out_dir, kind, replace=False) as tmp, progress() as bar:
         task = bar.add_task(description, total=len(paths))
         for path in paths:
-            results.append(work(path))
+            results.append(work(path, tmp / output_stem(path)))
             bar.advance(task)
     return results
 
@@ -119,13 +149,13 @@ def densify_command(
                          weights=None if weights is None else str(weights), halo=halo, max_leaf=max_leaf,
                          min_leaf=min_leaf)
 
-    def work(path: Path) -> list[Any]:
+    def work(path: Path, prefix: Path) -> list[Any]:
         cloud = _read_building_points(path, crs)
         dense, stats = densify_cloud(cloud, params, seed or 0)
-        write_las(out_dir / f"{path.stem}.laz", dense)
+        write_las(prefix.with_name(f"{prefix.name}.laz"), dense)
         return [path.name, len(cloud), stats["outliers_removed"], stats["new_points"], len(dense)]
 
-    rows = _each(inputs, "densifying", work)
+    rows = _each(inputs, "densifying", work, out_dir, "densify")
     _table(f"densified into {out_dir}", ["file", "points in", "outliers", "new points", "points out"], rows)
 
 
@@ -154,15 +184,15 @@ def flatten_command(
     params = params_from(FlattenParams, config, method=method, distance=distance, min_points=min_points,
                          regularise=regularise)
 
-    def work(path: Path) -> list[Any]:
+    def work(path: Path, prefix: Path) -> list[Any]:
         cloud = _read_building_points(path, crs)
         flat, stats = flatten_cloud(cloud, params, seed or 0)
-        write_las(out_dir / f"{path.stem}.laz", flat)
-        write_text_atomic(out_dir / f"{path.stem}.planes.json", json.dumps(stats["plane_list"], indent=1))
+        write_las(prefix.with_name(f"{prefix.name}.laz"), flat)
+        write_text_atomic(prefix.with_name(f"{prefix.name}.planes.json"), json.dumps(stats["plane_list"], indent=1))
         return [path.name, int((flat.attrs["classification"] == 6).sum()), stats["planes"],
                 stats["planar_share"], stats["mean_move"]]
 
-    rows = _each(inputs, "flattening", work)
+    rows = _each(inputs, "flattening", work, out_dir, "flatten")
     _table(f"flattened into {out_dir}", ["file", "building points", "planes", "on a plane", "mean move (m)"], rows)
 
 
@@ -193,7 +223,7 @@ def voxelize_command(
 
     params = params_from(VoxelParams, config, size=size, min_points=min_points)
 
-    def work(path: Path) -> list[Any]:
+    def work(path: Path, prefix: Path) -> list[Any]:
         cloud = read_las(path, crs=crs)
         if "classification" not in cloud.attrs:
             raise InputError("the points have no classification", path)
@@ -201,14 +231,14 @@ def voxelize_command(
             grid = voxelize_naive(cloud.xyz, cloud.attrs["classification"], cloud.rgb8(), params.size, crs=cloud.crs)
         else:
             grid = building_voxels(cloud, params)
-        write_voxels(out_dir / f"{path.stem}.voxels.npz", grid)
+        write_voxels(prefix.with_name(f"{prefix.name}.voxels.npz"), grid)
         if vox and len(grid.ijk):
-            write_vox(out_dir / f"{path.stem}.vox", grid)
+            write_vox(prefix.with_name(f"{prefix.name}.vox"), grid)
         if ply and len(grid.ijk):
-            write_voxel_ply(out_dir / f"{path.stem}.cubes.ply", grid)
+            write_voxel_ply(prefix.with_name(f"{prefix.name}.cubes.ply"), grid)
         return [path.name, len(cloud), len(grid.ijk), grid.size]
 
-    rows = _each(inputs, "voxelizing", work)
+    rows = _each(inputs, "voxelizing", work, out_dir, "voxelize")
     _table(f"voxels in {out_dir}" + (" (naive baseline)" if naive else ""), ["file", "points", "voxels", "size"],
            rows)
 
@@ -240,18 +270,17 @@ def mesh_command(
 
         fps = read_footprints(footprints)
 
-    def work(path: Path) -> list[Any]:
+    def work(path: Path, prefix: Path) -> list[Any]:
         from lidarmap.io.meshfile import write_mesh
 
         meshes = _meshes_of(path, kinds, params, size or 0.5, fps, crs)
         for kind, mesh in meshes.items():
-            stem = path.name.removesuffix(".voxels.npz") if path.name.endswith(".voxels.npz") else path.stem
-            name = stem if len(meshes) == 1 else f"{stem}.{kind}"
-            write_mesh(out_dir / f"{name}.ply", mesh)
-            write_mesh(out_dir / f"{name}.obj", mesh)
+            name = prefix.name if len(meshes) == 1 else f"{prefix.name}.{kind}"
+            write_mesh(prefix.with_name(f"{name}.ply"), mesh)
+            write_mesh(prefix.with_name(f"{name}.obj"), mesh)
         return [[path.name, kind, len(m.faces), "yes" if m.is_watertight else "no"] for kind, m in meshes.items()]
 
-    rows = [row for rows in _each(inputs, "meshing", work) for row in rows]
+    rows = [row for rows in _each(inputs, "meshing", work, out_dir, "mesh") for row in rows]
     _table(f"meshes in {out_dir}", ["input", "mesh", "triangles", "watertight"], rows)
 
 
@@ -324,14 +353,20 @@ def run_command(
     crs: Optional[str] = CrsOption,
     seed: Optional[int] = SeedOption,
     config: Optional[Path] = ConfigOption,
+    json_output: bool = JsonOption,
 ) -> None:
     """The whole aerial pipeline: prep -> segment -> densify/flatten -> voxelize -> mesh, per building, into
-    OUT/buildings/<id>/ (points.laz, voxels.npz/.vox, mesh.ply/.obj), OUT/summary.json, OUT/buildings.city.json."""
+    OUT/buildings/<id>/ (points.laz, voxels.npz/.vox, mesh.ply/.obj), OUT/summary.json, OUT/buildings.city.json,
+    OUT/buildings.gpkg (every footprint with its status, for a GIS)."""
+    json_mode(json_output)
     pipeline_config = _pipeline_config(config, stages=stages, method=method, model=model, union=union,
                                        voxel_size=voxel_size, mesh=mesh, workers=workers, scheduler=scheduler,
                                        id_field=id_field, seed=seed)
     result = run_with_progress(tiles, footprints, out_dir, pipeline_config, crs)
-    print_run_summary(result)
+    if json_output:
+        echo_json(run_json(result))
+    else:
+        print_run_summary(result)
     if not result.records:
         raise InputError("no building could be reconstructed (see the failures above)", footprints)
 
@@ -339,21 +374,17 @@ def run_command(
 def _pipeline_config(config: Path | None, *, stages: str | None, method: str | None, model: Path | None,
                      union: bool | None, voxel_size: float | None, mesh: str | None, workers: int | None,
                      scheduler: str | None, id_field: str | None, seed: int | None) -> Any:
+    from lidarmap.aerial.coverage import CoverageParams
     from lidarmap.aerial.densify import DensifyParams
     from lidarmap.aerial.flatten import FlattenParams
     from lidarmap.aerial.mesh import MeshParams
     from lidarmap.aerial.pipeline import PipelineConfig, RunParams, check_stage_names
     from lidarmap.aerial.prep import PrepParams
     from lidarmap.aerial.voxel import VoxelParams
-    from lidarmap.config import check_sections, load_toml
+    from lidarmap.export.planar import PlanarParams
     from lidarmap.segment.predict import PredictParams
 
-    tables = {cls.section for cls in (RunParams, PrepParams, PredictParams, DensifyParams, FlattenParams,
-                                      VoxelParams, MeshParams)}
-    try:
-        check_sections(load_toml(config), tables | {"segment_train", "baseline", "facade", "refine", "simulate"})
-    except ConfigError as exc:
-        raise ConfigError(exc.problem, config) from None
+    # params_from refuses tables no command knows (lidarmap.config.KNOWN_TABLES)
     return PipelineConfig(
         run=params_from(RunParams, config, stages=None if stages is None else check_stage_names(stages),
                         method=method, model=None if model is None else str(model), union=union, mesh=mesh,
@@ -364,6 +395,8 @@ def _pipeline_config(config: Path | None, *, stages: str | None, method: str | N
         flatten=params_from(FlattenParams, config),
         voxel=params_from(VoxelParams, config, size=voxel_size),
         mesh=params_from(MeshParams, config),
+        coverage=params_from(CoverageParams, config),
+        lod22=params_from(PlanarParams, config),
     )
 
 
@@ -392,16 +425,29 @@ def run_with_progress(tiles: list[Path], footprints: Path, out_dir: Path, pipeli
         return run_pipeline(tiles, fps, out_dir, pipeline_config, crs=crs, report=report)
 
 
+def run_json(result: Any) -> dict[str, Any]:
+    """``run --json``: what the run did and where its outputs are (per building its building.json record)."""
+    out = result.out_dir
+    return {"out_dir": str(out), "processed": result.processed, "skipped": result.skipped, "failed": result.failed,
+            "dropped": result.dropped, "seconds": round(result.seconds, 3),
+            "outputs": {"summary": str(out / "summary.json"), "cityjson": str(out / "buildings.city.json"),
+                        "geopackage": str(out / "buildings.gpkg")},
+            "buildings": [{k: v for k, v in r.items() if k != "fingerprint"} for r in result.records]}
+
+
 def print_run_summary(result: Any) -> None:
     """The per-building table, failures, and where the outputs are."""
     rows = []
     for r in result.records:
         state = "skipped (done)" if r["id"] in result.skipped else "done"
+        coverage = r.get("coverage")
+        covered = "" if coverage is None else f"{coverage:.2f}" + (" partial" if r.get("status") == "partial" else "")
         rows.append([r["id"], r["points"], r["building_points"], r.get("new_points", 0), r.get("planes", 0),
                      r["voxels"], r["mesh_faces"][r["mesh"]], "yes" if r["watertight"][r["mesh"]] else "no",
-                     r["seconds"]["total"], state])
+                     covered, r["seconds"]["total"], state])
     _table(f"lidarmap run -> {result.out_dir}", ["building", "points", "building pts", "new pts", "planes",
-                                                  "voxels", "mesh triangles", "watertight", "s", ""], rows)
+                                                  "voxels", "mesh triangles", "watertight", "coverage", "s", ""],
+           rows)
     out = table_console()
     for bid, reason in result.failed.items():
         out.print(f"[yellow]failed[/] {bid}: {escape(reason)}", highlight=False)

@@ -12,7 +12,6 @@
 from __future__ import annotations
 
 import math
-import shutil
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -29,10 +28,10 @@ from lidarmap.cli.common import (
     progress,
     table_console,
 )
-from lidarmap.errors import InputError
 
-#: A file that marks a folder as a demo output, so a later demo may replace it (and nothing else).
-MARKER = "lidarmap-demo.txt"
+#: What a demo writes into its folder (listed in the folder's marker, :mod:`lidarmap.io.outdir`): a later demo
+#: replaces these and nothing else.
+DEMO_OUTPUTS = ("city", "aerial", "city.lmap", "city.lmap.lock", "city.city.json", "renders")
 
 
 def register(app: typer.Typer) -> None:
@@ -69,16 +68,12 @@ def demo_command(
 
 
 def _prepare(out: Path) -> None:
-    """Refuse a folder that is neither empty nor an earlier demo; clear an earlier demo."""
-    if out.exists():
-        if not out.is_dir():
-            raise InputError("demo output exists and is not a folder", out)
-        if any(out.iterdir()):
-            if not (out / MARKER).exists():
-                raise InputError("folder is not empty and is not an earlier demo; choose another --out", out)
-            shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / MARKER).write_text("made by `lidarmap demo`; a later demo replaces this folder\n", encoding="utf-8")
+    """Refuse a folder that is neither empty nor an earlier demo; clear what an earlier demo wrote (only that)."""
+    from lidarmap.io.outdir import claim_out_dir, remove_marked, start_marked_dir
+
+    claim_out_dir(out, "demo", "demo output")
+    remove_marked(out)
+    start_marked_dir(out, "demo", DEMO_OUTPUTS)
 
 
 def _simulate(city: Path, params: Any) -> Any:
@@ -210,10 +205,10 @@ def _outputs(out: Path) -> None:
     rows = [
         ("city/", "simulated data: als.laz, mls_<i>.laz, trajectory_<i>.csv, footprints.geojson, truth/"),
         ("aerial/buildings/<id>/", "points.laz, voxels.npz/.vox, mesh.ply/.obj (CRS, double precision)"),
-        ("aerial/buildings.city.json", "CityJSON 2.0: LoD1 blocks + LoD2.2 meshes of the reconstructed buildings"),
+        ("aerial/buildings.city.json", "CityJSON 2.0: LoD1 blocks + LoD2.2 planar faces, footprint coverage"),
         ("aerial/buildings.glb", "glTF 2.0 of the meshes (local origin) for viewers"),
         ("city.lmap", "the façade map (SQLite; try `lidarmap map show` / `map history`)"),
-        ("city.city.json", "CityJSON 2.0 of the map: walls with windows/doors, roofs, uncertainties"),
+        ("city.city.json", "CityJSON 2.0 of the map: LoD 3 walls with windows/doors, LoD 2, roofs, uncertainties"),
         ("view.html", "3D viewer page of the map (self-contained: open it in a browser)"),
         ("renders/", "one PNG per façade: layers, windows (red, with ε), unknown regions (white)"),
     ]

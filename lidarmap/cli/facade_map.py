@@ -3,6 +3,7 @@
 ::
 
     lidarmap map update MAP --points MLS.laz --trajectory T.csv --footprints F.geojson   # a mobile campaign
+    lidarmap map update MAP --points MLS.ply [--columns ...] [--crs EPSG:N] [-f F]      # PLY/XYZ (docs/mls.md)
     lidarmap map update MAP --aerial ALS.laz [--footprints F.geojson]                    # roof planes
     lidarmap map show MAP [--building ID] [--as-of N]
     lidarmap map history MAP
@@ -28,8 +29,11 @@ from lidarmap.cli.common import (
     ConfigOption,
     CrsOption,
     IdFieldOption,
+    JsonOption,
     SeedOption,
+    echo_json,
     handle_errors,
+    json_mode,
     params_from,
     progress,
     table_console,
@@ -78,34 +82,48 @@ def update_params(config: Path | None, workers: int | None = None, scheduler: st
     return params_from(UpdateParams, config, workers=workers, scheduler=scheduler)
 
 
+def mls_params(config: Path | None) -> tuple[Any, Any]:
+    """SensorParams (``[sensors]``) and DiscoverParams (``[discover]``): campaigns without trajectory file or
+    footprints (docs/mls.md)."""
+    from lidarmap.facade.discover import DiscoverParams
+    from lidarmap.facade.sensors import SensorParams
+
+    return params_from(SensorParams, config), params_from(DiscoverParams, config)
+
+
 _UPDATE_STEPS = ("fingerprint", "reading points", "reading footprints", "refining the map", "committing")
 
 
 @handle_errors
 def update_command(
     map_path: Path = MapArgument,
-    points: Optional[Path] = typer.Option(None, "--points", help="Mobile campaign points (LAS/LAZ with GPS time).",
-                                          dir_okay=False),
-    trajectory: Optional[Path] = typer.Option(None, "--trajectory", help="Trajectory CSV of the mobile campaign.",
-                                              dir_okay=False),
+    points: Optional[Path] = typer.Option(None, "--points", help="Mobile campaign points: LAS/LAZ, PLY or text "
+                                          "(.xyz/.txt/.csv); see docs/mls.md.", dir_okay=False),
+    trajectory: Optional[Path] = typer.Option(None, "--trajectory", help="Trajectory CSV of the mobile campaign "
+                                              "(the points need GPS time); without it the points' sensor origins "
+                                              "or a path estimated from the cloud.", dir_okay=False),
     aerial: Optional[Path] = typer.Option(None, "--aerial", help="Aerial scan (LAS/LAZ): adds roof planes.",
                                           dir_okay=False),
-    footprints: Optional[Path] = typer.Option(None, "--footprints", "-f", help="Building footprints (GeoJSON); "
-                                              "optional with --aerial (default: the map's buildings).",
-                                              dir_okay=False),
+    footprints: Optional[Path] = typer.Option(None, "--footprints", "-f", help="Building footprints (GeoJSON; "
+                                              "GeoPackage/Shapefile/FlatGeobuf with the gis extra); optional with "
+                                              "--aerial (default: the map's buildings).", dir_okay=False),
     id_field: Optional[str] = IdFieldOption,
     crs: Optional[str] = CrsOption,
+    columns: Optional[str] = typer.Option(None, "--columns", help="Columns of a text point file, e.g. "
+                                          "x,y,z,intensity,gps_time ('_' skips one); default: its header line."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes for the buildings of a mobile "
                                           "campaign (dask LocalCluster; default 1: this process)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address for multi-machine "
                                             "updates, e.g. tcp://10.0.0.5:8786."),
     seed: Optional[int] = SeedOption,
     config: Optional[Path] = ConfigOption,
+    json_output: bool = JsonOption,
 ) -> None:
     """Fuse one campaign into the map (created if missing): façades, layers, windows, doors, occlusions or roofs."""
     from lidarmap.map.apply import apply_campaign, campaign_inputs
 
-    inputs = campaign_inputs(points, trajectory, aerial, footprints, id_field, crs)
+    json_mode(json_output)
+    inputs = campaign_inputs(points, trajectory, aerial, footprints, id_field, crs, columns)
     params = stage_params(config)
     update = update_params(config, workers, scheduler)
     with progress(transient=True) as bar:
@@ -117,8 +135,19 @@ def update_command(
         def buildings(done: int, total: int) -> None:
             bar.update(task, description=f"refining the map ({done}/{total} buildings)")
 
-        result = apply_campaign(map_path, inputs, params, 0 if seed is None else seed, step, update, buildings)
-    _print_update(map_path, result)
+        result = apply_campaign(map_path, inputs, params, 0 if seed is None else seed, step, update, buildings,
+                                *mls_params(config))
+    if json_output:
+        echo_json({"map": str(map_path), "campaign": _campaign_json(result.campaign), "counts": result.counts,
+                   "changes": result.changes, "failed": result.failed, "seconds": round(result.seconds, 3)})
+    else:
+        _print_update(map_path, result)
+
+
+def _campaign_json(campaign: Any) -> dict[str, Any]:
+    import dataclasses
+
+    return dataclasses.asdict(campaign)
 
 
 def _change_text(change: dict[str, int]) -> tuple[str, str, str]:
@@ -157,7 +186,7 @@ def load_map(map_path: Path, as_of: int | None, building: str | None = None) -> 
     """The stored map (as of a campaign), optionally reduced to one building (unknown id: one-line error)."""
     from lidarmap.map.store import MapStore
 
-    with MapStore.open(map_path) as store:
+    with MapStore.open(map_path, readonly=True) as store:
         building_map = store.load(as_of=as_of)
     if building is not None:
         if building not in building_map.buildings:
@@ -228,14 +257,37 @@ def _elements_table(building_map: BuildingMap, limit: int | None) -> tuple[Table
     return table, len(rows)
 
 
+def _show_json(building_map: BuildingMap, map_path: Path, as_of: int | None, crs: str) -> dict[str, Any]:
+    """``map show --json``: the same rows as the tables, as one object (numbers unrounded, ε ∞ as null)."""
+    from lidarmap.export.summary import element_class
+
+    def facade(f: Any) -> dict[str, Any]:
+        return {"facade": f.facade_id, "normal": [float(v) for v in f.frame.normal[:2]], "offset": f.frame.offset,
+                "sigma": f.sigma, "extent": list(f.extent), "main_layer": f.main_layer, "points": f.n_points,
+                "campaigns": list(f.campaigns),
+                "layers": [{"layer": la.layer_id, "mu": la.mu, "sigma": la.sigma, "weight": la.weight}
+                           for la in f.layers],
+                "elements": [{"element": e.element_id, "kind": element_class(e).rstrip("s"), "layer": e.layer_id,
+                              "uncertainty": None if e.uncertainty == float("inf") else e.uncertainty,
+                              "area": e.polygon.area, "bounds": list(e.polygon.bounds), "points": e.n_points,
+                              "campaigns": list(e.campaigns)} for e in f.elements]}
+
+    return {"map": str(map_path), "state": _state(building_map, as_of), "crs": crs,
+            "buildings": [{"id": bid, "footprint_area": b.footprint.area, "roofs": len(b.roofs),
+                           "facades": [facade(f) for f in b.facades]} for bid, b in building_map.buildings.items()]}
+
+
 @handle_errors
 def show_command(map_path: Path = MapArgument, building: Optional[str] = BuildingOption,
-                 as_of: Optional[int] = AsOfOption) -> None:
+                 as_of: Optional[int] = AsOfOption, json_output: bool = JsonOption) -> None:
     """Tables of the map: buildings, façades (plane, σ, extent, layers), elements (kind, layer, ε, area)."""
     from pyproj import CRS
 
     building_map = load_map(map_path, as_of, building)
     crs = CRS.from_user_input(building_map.crs_wkt).name if building_map.crs_wkt else "unknown CRS"
+    if json_output:
+        echo_json(_show_json(building_map, map_path, as_of, crs))
+        return
     title = f"{map_path.name}: {_state(building_map, as_of)}, {crs}"
     out = table_console()
     out.print(_buildings_table(building_map, title))
@@ -247,12 +299,16 @@ def show_command(map_path: Path = MapArgument, building: Optional[str] = Buildin
 
 
 @handle_errors
-def history_command(map_path: Path = MapArgument) -> None:
+def history_command(map_path: Path = MapArgument, json_output: bool = JsonOption) -> None:
     """One row per campaign: what it was and what it changed (added ~updated -removed per entity)."""
     from lidarmap.map.store import ENTITIES, MapStore
 
-    with MapStore.open(map_path) as store:
+    with MapStore.open(map_path, readonly=True) as store:
         history = store.history()
+    if json_output:
+        echo_json({"map": str(map_path), "campaigns": [{**_campaign_json(c), "changes": changes}
+                                                        for c, changes in history]})
+        return
     table = Table(title=f"{map_path.name}: {len(history)} campaign(s)", title_justify="left")
     for column in ("campaign", "kind", "source", "points", "created", "changes", "map after it"):
         table.add_column(column, justify="right" if column in ("campaign", "points") else "left")

@@ -9,7 +9,7 @@ import typer
 from rich.table import Table
 
 from lidarmap.cli.common import console, handle_errors
-from lidarmap.io.info import las_info
+from lidarmap.io.info import las_info, points_info
 
 ASPRS_CLASSES = {0: "never classified", 1: "unclassified", 2: "ground", 3: "low vegetation", 4: "medium vegetation",
                  5: "high vegetation", 6: "building", 7: "low point (noise)", 9: "water", 17: "bridge deck",
@@ -22,12 +22,16 @@ def register(app: typer.Typer) -> None:
 
 @handle_errors
 def info(
-    file: Path = typer.Argument(..., help="LAS or LAZ file."),
+    file: Path = typer.Argument(..., help="LAS/LAZ, PLY or text (.xyz/.txt/.csv) point file."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object (for scripts)."),
     crs: str = typer.Option(None, "--crs", help="CRS to assume when the file has none, e.g. EPSG:28992."),
+    columns: str = typer.Option(None, "--columns", help="Columns of a text point file, e.g. x,y,z,intensity "
+                                "(docs/mls.md)."),
 ) -> None:
-    """Summarise a LAS/LAZ file: points, format, CRS, bounds, density, classes, returns, GPS time, extra dims."""
-    summary = las_info(file, crs=crs)
+    """Summarise a point file: points, format, CRS, bounds, density, classes, returns, GPS time, extra dims."""
+    from lidarmap.io.points import point_format
+
+    summary = las_info(file, crs=crs) if point_format(file) == "las" else points_info(file, crs, columns)
     if as_json:
         typer.echo(json.dumps(summary))
         return
@@ -36,8 +40,8 @@ def info(
     table.add_column("value")
     crs_info = summary["crs"]
     table.add_row("points", f"{summary['point_count']:,}")
-    table.add_row("format", f"LAS {summary['las_version']}, point format {summary['point_format']}"
-                  + (" (LAZ)" if summary["compressed"] else ""))
+    table.add_row("format", summary.get("format") or f"LAS {summary['las_version']}, point format "
+                  f"{summary['point_format']}" + (" (LAZ)" if summary["compressed"] else ""))
     table.add_row("CRS", "none (use --crs)" if crs_info is None else
                   f"{crs_info['name']} (EPSG:{crs_info['epsg']})" if crs_info["epsg"] else crs_info["name"])
     if summary["bounds"]:

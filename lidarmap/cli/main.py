@@ -7,18 +7,19 @@ import importlib
 import typer
 
 from lidarmap._version import __version__
+from lidarmap.cli.common import configure_logging
 
 app = typer.Typer(
     name="lidarmap",
     help="LiDAR point clouds of cities to building models that get better with every new scan.",
     no_args_is_help=True,
-    add_completion=False,
+    add_completion=True,
     pretty_exceptions_enable=False,
     context_settings={"help_option_names": ["-h", "--help"]},
 )
 
 #: Modules under lidarmap.cli that define ``register(app)``; order is the order in ``--help``.
-COMMAND_MODULES = ["info", "simulate", "prep", "segment", "aerial", "facade_map", "view", "demo"]
+COMMAND_MODULES = ["info", "simulate", "prep", "segment", "aerial", "facade_map", "view", "demo", "config_cmd"]
 
 
 def _version(value: bool) -> None:
@@ -29,8 +30,13 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _root(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
-                                       help="Print the version and exit.")) -> None:
+                                       help="Print the version and exit."),
+          verbose: int = typer.Option(0, "--verbose", "-v", count=True,
+                                      help="More messages on stderr: -v progress notes, -vv debugging."),
+          quiet: bool = typer.Option(False, "--quiet", "-q", help="Errors only: no tables, warnings or progress.")
+          ) -> None:
     """LiDAR point clouds of cities to building models that get better with every new scan."""
+    configure_logging(verbose, quiet)
 
 
 for _name in COMMAND_MODULES:

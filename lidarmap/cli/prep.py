@@ -71,6 +71,8 @@ def prep_command(
     table.add_row("buildings written", f"{len(result.buildings):,}")
     for reason, count in _reason_counts(result.dropped).items():
         table.add_row(f"dropped: {reason}", f"{count:,}")
+    if result.repaired:
+        table.add_row("repaired (self-intersecting)", f"{len(result.repaired):,}")
     console.print(table)
     console.print(f"done in {result.seconds:.1f} s ({result.points_per_second:,.0f} points/s)")
 

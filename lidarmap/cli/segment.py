@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 from typing import Any, Optional
 
@@ -31,6 +32,8 @@ segment_app = typer.Typer(name="segment", no_args_is_help=True, add_completion=F
 METHOD_HELP = "pointnet2 (default) or baseline (geometric features + gradient boosting)."
 MODEL_HELP = "Model file (default: the shipped model of the method; a .joblib file implies --method baseline)."
 DEVICE_HELP = "cpu, cuda or auto (a GPU when there is one)."
+VegetationOption = typer.Option(None, "--vegetation/--no-vegetation", help="Drop building points that look like "
+                                "vegetation (porous, scattered) after the model (default on; [segment] vegetation).")
 #: Files of a prep folder copied next to the segmented buildings, so the output is a prep folder too.
 PREP_SIDE_FILES = ("buildings.csv", "frame.json", "prep.json")
 
@@ -139,6 +142,7 @@ def predict_command(
                                          "whatever the model says."),
     threshold: Optional[float] = typer.Option(None, "--threshold", help="Building probability threshold "
                                               "(default 0.5)."),
+    vegetation: Optional[bool] = VegetationOption,
     seed: Optional[int] = SeedOption,
     device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP),
     crs: Optional[str] = CrsOption,
@@ -149,7 +153,8 @@ def predict_command(
     from lidarmap.io.las import write_las
     from lidarmap.segment.predict import segmented_cloud
 
-    params = _predict_params(config, union=union, threshold=threshold, seed=seed, device=device)
+    params = _predict_params(config, union=union, threshold=threshold, seed=seed, device=device,
+                             vegetation=vegetation)
     check_inputs(inputs)
     items = [Input(path, None, _prep_parts(path)) for path in inputs]
     sources = {p.resolve() for item in items for p in ([item.path] if item.parts is None else
@@ -216,18 +221,27 @@ def evaluate_command(
     keep_labels: bool = typer.Option(False, "--keep-labels", help="Let the model see the input classes (ground "
                                      "class 2 for height above ground); default: labels removed first."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object (for scripts)."),
+    vegetation: Optional[bool] = VegetationOption,
     seed: Optional[int] = SeedOption,
     device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP),
     crs: Optional[str] = CrsOption,
     config: Optional[Path] = ConfigOption,
 ) -> None:
-    """Score the model on labelled points (class 6 = building, other labelled classes = not; 0/1 not scored)."""
+    """Score the model on labelled points (class 6 = building, other labelled classes = not; 0/1 not scored) and
+    on every point: the share of tree-like points predicted building, the share of added building points that are
+    tree-like (docs/segmentation.md)."""
     import numpy as np
 
     from lidarmap.segment.blocks import hide_labels
-    from lidarmap.segment.metrics import evaluate_classes, scores
+    from lidarmap.segment.metrics import (
+        combine_tree_scores,
+        evaluate_classes,
+        scores,
+        tree_scores,
+    )
+    from lidarmap.segment.vegetation import tree_like_cloud
 
-    params = _predict_params(config, seed=seed, device=device)
+    params = _predict_params(config, seed=seed, device=device, vegetation=vegetation)
     check_inputs(inputs)
     method, segmenter = load_segmenter(method, model)
     report: dict[str, Any] = {"method": method, "labels_removed": not keep_labels, "inputs": {}}
@@ -242,9 +256,11 @@ def evaluate_command(
         result = evaluate_classes(truth, probability >= params.threshold)
         if result["points"] == 0:
             raise InputError("has no labelled points (all class 0/1): nothing to evaluate", path)
+        result["trees"] = tree_scores(tree_like_cloud(item.cloud), truth, probability >= params.threshold)
         report["inputs"][str(path)] = result
         total += np.asarray(result["confusion"]["matrix"], np.int64)
     report["total"] = scores(total)
+    report["total"]["trees"] = combine_tree_scores([r["trees"] for r in report["inputs"].values()])
     if as_json:
         typer.echo(json.dumps(report))
         return
@@ -262,6 +278,20 @@ def _print_scores(report: dict[str, Any]) -> None:
                       f"{s['overall_accuracy']:.4f}", f"{s['iou']['building']:.4f}",
                       f"{s['iou']['not-building']:.4f}", f"{s['miou']:.4f}", _confusion(s["confusion"]["matrix"]))
     console.print(table)
+    trees = Table(title="every point: tree-like points (docs/segmentation.md) called building", title_justify="left")
+    for column in ("input", "tree-like", "called building", "added building", "of which tree-like"):
+        trees.add_column(column, justify="left" if column == "input" else "right")
+    for name, s in rows:
+        t = s["trees"]
+        trees.add_row(Path(name).name if name != "total" else "[bold]total[/]", f"{t['tree_like_points']:,}",
+                      _share(t["tree_like_false_positive_rate"]), f"{t['added_points']:,}",
+                      _share(t["added_tree_like_share"]))
+    console.print(trees)
+
+
+def _share(value: float) -> str:
+    """A share with 4 decimals; '-' when there was nothing to share (nan)."""
+    return "-" if math.isnan(value) else f"{value:.4f}"
 
 
 def _confusion(matrix: list[list[int]]) -> str:

@@ -31,6 +31,15 @@ def simulate_command(
     buildings: Optional[int] = typer.Option(None, "--buildings", help="Existing buildings (default 8); one "
                                             "construction site is always added."),
     campaigns: Optional[int] = typer.Option(None, "--campaigns", help="Mobile campaigns (default 3)."),
+    family: Optional[str] = typer.Option(None, "--family", help="Scene family: standard (default) or hard "
+                                         "(randomised façades, glass, grazing side walls, varied campaigns; "
+                                         "docs/simulator.md)."),
+    mls_format: Optional[str] = typer.Option(None, "--mls-format", help="Mobile campaigns as laz (default), ply "
+                                             "(binary) or ply_ascii, as public MLS data sets come (docs/mls.md)."),
+    mls_origins: Optional[bool] = typer.Option(None, "--mls-origins/--no-mls-origins", help="PLY: per-point "
+                                               "sensor origins x_origin, y_origin, z_origin (default: none)."),
+    mls_gps_time: Optional[bool] = typer.Option(None, "--mls-gps-time/--no-mls-gps-time", help="PLY: per-point "
+                                                "GPS time (default: yes)."),
     config: Optional[Path] = ConfigOption,
 ) -> None:
     """Simulate a city (aerial als.laz, mobile mls_<i>.laz + trajectory_<i>.csv, footprints.geojson, truth/)."""
@@ -39,7 +48,8 @@ def simulate_command(
         simulate,
     )
 
-    params = params_from(SimParams, config, seed=seed, buildings=buildings, campaigns=campaigns)
+    params = params_from(SimParams, config, seed=seed, buildings=buildings, campaigns=campaigns, family=family,
+                         mls_format=mls_format, mls_origins=mls_origins, mls_gps_time=mls_gps_time)
     with progress() as bar:
         tasks: dict[str, int] = {}
 
@@ -49,7 +59,7 @@ def simulate_command(
             bar.update(tasks[task], completed=done, total=total)
 
         result = simulate(out_dir, params, report)
-    table = Table(title=f"simulated seed {params.seed} into {result.out_dir}", title_justify="left")
+    table = Table(title=f"simulated {params.family} seed {params.seed} into {result.out_dir}", title_justify="left")
     table.add_column("file")
     table.add_column("points", justify="right")
     table.add_row(result.als.name, f"{result.als_points:,}")

@@ -38,9 +38,10 @@ def _run_glb(out_dir: Path) -> bytes:
     try:
         run = json.loads(summary.read_text(encoding="utf-8"))
         records, crs_wkt = run["records"], run.get("crs") or ""
+        stems = {fid: Path(folder).name for fid, folder in run["folders"].items()}
     except (ValueError, KeyError, TypeError) as exc:
         raise InputError(f"unreadable run summary ({exc})", summary) from None
-    return glb_bytes(run_glb_buildings(out_dir, records), crs_wkt, title=RUN_GLB_TITLE)
+    return glb_bytes(run_glb_buildings(out_dir, records, stems), crs_wkt, title=RUN_GLB_TITLE)
 
 
 def _source(source: Path, as_of: int | None) -> tuple[bytes, str, list[dict[str, Any]]]:

@@ -5,10 +5,12 @@ Mapping (docs/map.md has the full table):
 * ``transform``: scale 0.001 (mm) and a whole-metre translate; vertices are integers, so every exported coordinate
   is within 0.5 mm of the map's float64 value. ``metadata.referenceSystem`` is
   ``https://www.opengis.net/def/crs/EPSG/0/<code>`` when the map's CRS has an EPSG code.
-* A building with façades or roof planes gets one ``MultiSurface`` at ``lod "2"`` with semantic surfaces:
+* A building with façades or roof planes gets a ``MultiSurface`` at ``lod "2"`` (walls without openings or
+  structures, roofs) and, when it has windows, doors or structures, first one at ``lod "3"`` (openings are an LoD 3
+  concept) with semantic surfaces:
 
   - each façade: a ``WallSurface`` (``lidarmap_kind: "facade"``) covering its extent at the main layer's depth,
-    with the window/door openings cut out as holes; attributes: façade id, depth σ of the plane, points,
+    at LoD 3 with the window/door openings cut out as holes; attributes: façade id, depth σ of the plane, points,
     campaigns, footprint edge, frame (origin, u, normal), extent, layers, and the façade's unknown regions;
   - windows and doors: ``Window`` / ``Door`` surfaces whose ``parent`` is that WallSurface (listed in its
     ``children``), at their layer's depth; attributes ``lidarmap_uncertainty`` (ε), ``lidarmap_depth``,
@@ -23,6 +25,10 @@ Mapping (docs/map.md has the full table):
 * A building without façades or roofs: a LoD1 block (``Solid``; ``MultiSurface`` for a multi-part footprint) from
   the footprint extruded by its height attribute (``measuredHeight``/``height``/``h``), from its ground height
   attribute (``ground_z``/``base_z``, else 0); without a height only the footprint at ``lod "0"``.
+
+Every surface is made valid in its plane before its vertices are registered (:mod:`lidarmap.export.geomcheck`):
+no repeated vertex, no self-touching ring (split into two surfaces with the same semantics), no sliver, no unused
+vertex, so tools that triangulate (cjio's OBJ export) accept the file.
 
 Building attributes are the map's (footprint properties; NaN/∞ become null) plus ``lidarmap_*`` counts
 (:func:`lidarmap.export.summary.count_buildings`) and the campaigns that observed it.
@@ -44,6 +50,8 @@ from pyproj import CRS
 from shapely.geometry import Polygon, box
 from shapely.geometry.polygon import orient
 
+from lidarmap.export.geomcheck import MIN_AREA, valid_polygons
+from lidarmap.export.planar import PlanarParams, planar_faces
 from lidarmap.export.summary import COUNT_KEYS, count_buildings
 from lidarmap.facade.model import Element, ElementKind, Facade
 from lidarmap.io.atomic import atomic_path, write_text_atomic
@@ -119,20 +127,24 @@ class _Vertices:
         self.index: dict[tuple[int, int, int], int] = {}
         self.list: list[list[int]] = []
 
-    def ring(self, xyz: np.ndarray) -> list[int] | None:
-        """Vertex indices of a ring (closing vertex dropped, repeated vertices removed); None if degenerate."""
-        q = np.rint((np.asarray(xyz, dtype=np.float64) - self.translate) / self.scale).astype(np.int64)
-        out: list[int] = []
-        for v in map(tuple, q.tolist()):
+    def polygons(self, rings_xyz: Sequence[np.ndarray]) -> list[list[list[int]]]:
+        """Vertex indices of a surface (exterior ring, then holes; CRS xyz, closing vertex optional) made valid in its
+        plane at the export's quantum (:func:`lidarmap.export.geomcheck.valid_polygons`): ``[]`` when it collapses,
+        several polygons when the repair splits it. Only the vertices of what is kept are registered."""
+        quantised = [np.rint((np.asarray(r, dtype=np.float64) - self.translate) / self.scale).astype(np.int64)
+                     for r in rings_xyz]
+        return [[self._register(ring) for ring in polygon]
+                for polygon in valid_polygons(quantised, MIN_AREA / self.scale ** 2)]
+
+    def _register(self, ring: np.ndarray) -> list[int]:
+        out = []
+        for v in map(tuple, ring.tolist()):
             i = self.index.get(v)  # type: ignore[arg-type]
             if i is None:
                 i = self.index[v] = self.base + len(self.list)  # type: ignore[index]
                 self.list.append(list(v))
-            if not out or out[-1] != i:
-                out.append(i)
-        while len(out) > 1 and out[0] == out[-1]:
-            out.pop()
-        return out if len(set(out)) >= 3 else None
+            out.append(i)
+        return out
 
 
 class _Surfaces:
@@ -150,11 +162,7 @@ class _Surfaces:
         Returns the semantic object's index, or ``None`` (nothing registered) when every part is degenerate at the
         export's millimetre quantum.
         """
-        surfaces = []
-        for rings_xyz in parts:
-            rings = [self.v.ring(r) for r in rings_xyz]
-            if rings[0] is not None:
-                surfaces.append([r for r in rings if r is not None])
+        surfaces = [polygon for rings_xyz in parts for polygon in self.v.polygons(rings_xyz)]
         if not surfaces:
             return None
         self.semantics.append(semantic)
@@ -252,8 +260,14 @@ def _is_opening(element: Element) -> bool:
     return element.kind in (ElementKind.WINDOW, ElementKind.DOOR) and not element.is_unknown
 
 
-def _add_facade(surfaces: _Surfaces, facade: Facade) -> None:
-    """The façade's WallSurface (openings cut out), its Window/Door children, structures; unknowns as attributes."""
+def _has_elements(building: Building) -> bool:
+    """Whether the building has openings or structures: what LoD 3 shows and LoD 2 does not."""
+    return any(not e.is_unknown for f in building.facades for e in f.elements)
+
+
+def _add_facade(surfaces: _Surfaces, facade: Facade, lod3: bool = True) -> None:
+    """The façade's WallSurface (at LoD 3: openings cut out, its Window/Door children, structures); unknown regions
+    as attributes."""
     s0, s1, t0, t1 = (float(x) for x in facade.extent)
     main = facade.layer(facade.main_layer)
     main_depth = float(main.mu) if main is not None else 0.0
@@ -261,6 +275,8 @@ def _add_facade(surfaces: _Surfaces, facade: Facade) -> None:
     if not extent.area > 0:
         return
     elements = [(e, _parts(shapely.make_valid(e.polygon)) if e.polygon is not None else []) for e in facade.elements]
+    if not lod3:  # LoD 2: the plain wall; openings and structures belong to LoD 3
+        elements = [(e, parts) for e, parts in elements if e.is_unknown]
     openings = [p for e, parts in elements if _is_opening(e) for p in parts]
     wall_parts = [extent]
     if openings:
@@ -326,20 +342,17 @@ def _block_shell(v: _Vertices, polygon: Polygon, base: float, top: float) -> tup
     polygon = orient(polygon, 1.0)
     rings = [np.asarray(r.coords, dtype=np.float64)[:, :2] for r in [polygon.exterior, *polygon.interiors]]
     surfaces, values = [], []
-    ground = [v.ring(np.column_stack([r[::-1], np.full(len(r), base)])) for r in rings]  # clockwise from above: down
-    roof = [v.ring(np.column_stack([r, np.full(len(r), top)])) for r in rings]
-    if ground[0] is not None:
-        surfaces.append([g for g in ground if g is not None])
-        values.append(0)
-    if roof[0] is not None:
-        surfaces.append([r for r in roof if r is not None])
-        values.append(1)
+    ground = v.polygons([np.column_stack([r[::-1], np.full(len(r), base)]) for r in rings])  # clockwise: down
+    roof = v.polygons([np.column_stack([r, np.full(len(r), top)]) for r in rings])
+    for kind, polygons in ((0, ground), (1, roof)):
+        surfaces.extend(polygons)
+        values.extend([kind] * len(polygons))
     for ring in rings:
         for a, b in zip(ring[:-1], ring[1:]):
-            quad = v.ring(np.array([[a[0], a[1], base], [b[0], b[1], base], [b[0], b[1], top], [a[0], a[1], top]]))
-            if quad is not None:
-                surfaces.append([quad])
-                values.append(2)
+            quads = v.polygons([np.array([[a[0], a[1], base], [b[0], b[1], base], [b[0], b[1], top],
+                                          [a[0], a[1], top]])])
+            surfaces.extend(quads)
+            values.extend([2] * len(quads))
     return surfaces, values
 
 
@@ -355,10 +368,8 @@ def _lod1(v: _Vertices, building: Building) -> dict[str, Any] | None:
         boundaries = []
         for part in parts:
             part = orient(part, 1.0)
-            rings = [v.ring(np.column_stack([np.asarray(r.coords)[:, :2], np.full(len(r.coords), base)]))
-                     for r in [part.exterior, *part.interiors]]
-            if rings[0] is not None:
-                boundaries.append([r for r in rings if r is not None])
+            boundaries.extend(v.polygons([np.column_stack([np.asarray(r.coords)[:, :2], np.full(len(r.coords), base)])
+                                          for r in [part.exterior, *part.interiors]]))
         return {"type": "MultiSurface", "lod": "0", "boundaries": boundaries} if boundaries else None
     semantics = [{"type": "GroundSurface"}, {"type": "RoofSurface"}, {"type": "WallSurface"}]
     shells = [_block_shell(v, part, base, base + height) for part in parts]
@@ -421,13 +432,14 @@ def map_to_cityjson(building_map: BuildingMap, scale: float = SCALE, title: str 
                                                   | {int(c) for r in building.roofs for c in r.campaigns})
         geometry: list[dict[str, Any]] = []
         if building.facades or building.roofs:
-            surfaces = _Surfaces(vertices)
-            for facade in building.facades:
-                _add_facade(surfaces, facade)
-            _add_roofs(surfaces, building)
-            geom = surfaces.geometry("2")
-            if geom is not None:
-                geometry.append(geom)
+            for lod in ("3", "2") if _has_elements(building) else ("2",):
+                surfaces = _Surfaces(vertices)
+                for facade in building.facades:
+                    _add_facade(surfaces, facade, lod3=lod == "3")
+                _add_roofs(surfaces, building)
+                geom = surfaces.geometry(lod)
+                if geom is not None:
+                    geometry.append(geom)
         if not geometry:
             geom = _lod1(vertices, building)
             if geom is not None:
@@ -462,30 +474,30 @@ class AerialBuilding:
     attributes: dict[str, Any]
 
 
-#: A mesh triangle whose normal has a z component above this is roof, below minus this ground, else wall.
-ROOF_NZ = 0.3
+#: Semantic surface types of the LoD 2.2 solid, in the order of its ``semantics.surfaces``.
+SOLID_SEMANTICS = ("GroundSurface", "RoofSurface", "WallSurface")
 
 
-def _mesh_solid(v: _Vertices, vertices: np.ndarray, faces: np.ndarray) -> dict[str, Any] | None:
-    """The closed mesh as an LoD2.2 ``Solid`` of triangles with Roof/Wall/GroundSurface semantics by normal."""
-    tri = vertices[faces]
-    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    nz = normals[:, 2] / np.maximum(np.linalg.norm(normals, axis=1), 1e-12)
-    kind = np.where(nz > ROOF_NZ, 1, np.where(nz < -ROOF_NZ, 0, 2))  # 0 ground, 1 roof, 2 wall
-    surfaces, values = [], []
-    for t, k in zip(tri, kind.tolist()):
-        ring = v.ring(t)
-        if ring is not None:  # triangles that collapse at the millimetre quantum are left out
-            surfaces.append([ring])
-            values.append(k)
-    if not surfaces:
+def _mesh_solid(v: _Vertices, vertices: np.ndarray, faces: np.ndarray,
+                params: PlanarParams = PlanarParams()) -> dict[str, Any] | None:
+    """The closed mesh as an LoD 2.2 ``Solid`` of planar faces (:func:`lidarmap.export.planar.planar_faces`), one
+    semantic surface per face (Roof/Wall/GroundSurface by its normal, ``lidarmap_planarity``: the largest distance
+    of its vertices to its plane, m)."""
+    boundaries, semantics, values = [], [], []
+    for face in planar_faces(vertices, faces, params):
+        polygons = [p for rings in face.polygons for p in v.polygons(rings)]
+        if not polygons:  # nothing left at the millimetre quantum
+            continue
+        semantics.append({"type": face.kind, "lidarmap_planarity": round(face.planarity, 3)})
+        boundaries.extend(polygons)
+        values.extend([len(semantics) - 1] * len(polygons))
+    if not boundaries:
         return None
-    return {"type": "Solid", "lod": "2.2", "boundaries": [surfaces],
-            "semantics": {"surfaces": [{"type": "GroundSurface"}, {"type": "RoofSurface"}, {"type": "WallSurface"}],
-                          "values": [values]}}
+    return {"type": "Solid", "lod": "2.2", "boundaries": [boundaries],
+            "semantics": {"surfaces": semantics, "values": [values]}}
 
 
-def _aerial_object(vertices: _Vertices, b: AerialBuilding) -> dict[str, Any]:
+def _aerial_object(vertices: _Vertices, b: AerialBuilding, planar: PlanarParams = PlanarParams()) -> dict[str, Any]:
     """One aerial building: an LoD1 block (footprint extruded from its ground height by its height) and the
     reconstructed mesh as an LoD2.2 solid, attributes kept."""
     geometry = []
@@ -494,7 +506,8 @@ def _aerial_object(vertices: _Vertices, b: AerialBuilding) -> dict[str, Any]:
                                          attributes={"height": b.height, "ground_z": b.ground_z}))
         if block is not None:
             geometry.append(block)
-    solid = _mesh_solid(vertices, np.asarray(b.mesh_vertices, np.float64), np.asarray(b.mesh_faces, np.int64))
+    solid = _mesh_solid(vertices, np.asarray(b.mesh_vertices, np.float64), np.asarray(b.mesh_faces, np.int64),
+                        planar)
     if solid is not None:
         geometry.append(solid)
     obj: dict[str, Any] = {"type": "Building", "attributes": _json_safe({**b.attributes, "measuredHeight": b.height})}
@@ -516,7 +529,8 @@ def _remap(boundaries: Any, new_index: np.ndarray) -> Any:
 
 def write_aerial_cityjson(path: str | Path, buildings: Iterable[AerialBuilding], crs_wkt: str,
                           translate: Sequence[float], scale: float = SCALE,
-                          title: str = "lidarmap aerial reconstruction") -> Path:
+                          title: str = "lidarmap aerial reconstruction", planar: PlanarParams = PlanarParams()
+                          ) -> Path:
     """Stream the aerial pipeline's buildings into a CityJSON 2.0 file with bounded memory (a city of thousands of
     buildings would not fit as one document of Python objects).
 
@@ -533,7 +547,7 @@ def write_aerial_cityjson(path: str | Path, buildings: Iterable[AerialBuilding],
         count = 0
         for b in buildings:
             vertices = _Vertices(translate, float(scale), base=count)
-            objects.write(_dump([str(b.id), _aerial_object(vertices, b)]) + "\n")
+            objects.write(_dump([str(b.id), _aerial_object(vertices, b, planar)]) + "\n")
             if vertices.list:
                 raw.write(np.asarray(vertices.list, dtype=np.int64).tobytes())
                 count += len(vertices.list)

@@ -34,11 +34,11 @@ import trimesh
 from trimesh.exchange.gltf import export_glb
 
 from lidarmap.export.cityjson import (
-    ROOF_NZ,
     AerialBuilding,
     _json_safe,
     map_to_cityjson,
 )
+from lidarmap.export.planar import ROOF_NZ
 from lidarmap.io.atomic import write_bytes_atomic
 
 __all__ = ["EPSILON_FULL", "KINDS", "ORIGIN_NODE", "ROOT_NODE", "UNKNOWN_OFFSET", "GlbBuilding", "aerial_glb_building",

@@ -28,6 +28,7 @@ from shapely.geometry import Polygon
 
 from lidarmap.facade.model import ElementKind, Facade
 from lidarmap.io.atomic import atomic_path
+from lidarmap.io.prepdir import shorten_stem
 from lidarmap.map.model import BuildingMap
 
 __all__ = ["render_facade", "render_map", "facade_image_size", "facade_filename", "MAIN_COLOUR", "STRUCTURE_COLOUR",
@@ -56,8 +57,9 @@ def facade_image_size(facade: Facade, width_px: int = 1200) -> tuple[int, int]:
 
 
 def facade_filename(building_id: str, facade_id: int) -> str:
-    """``<building>_facade<NN>.png`` with anything but letters, digits, '.', '_' and '-' replaced by '_'."""
-    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", str(building_id)).strip("._") or "building"
+    """``<building>_facade<NN>.png`` with anything but letters, digits, '.', '_' and '-' replaced by '_' (a long id
+    cut, with a hash: :func:`lidarmap.io.prepdir.shorten_stem`)."""
+    safe = shorten_stem(re.sub(r"[^A-Za-z0-9._-]+", "_", str(building_id)).strip("._") or "building", building_id)
     return f"{safe}_facade{int(facade_id):02d}.png"
 
 

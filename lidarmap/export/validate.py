@@ -8,7 +8,10 @@
    boundaries, a ``type`` on every semantic surface);
 2. references: every vertex index exists, ``semantics.values`` has one entry per surface and points at an existing
    semantic object, ``parent``/``children`` of semantic objects point at each other, City Object ``parents`` /
-   ``children`` exist, no vertex is listed twice, and every ring has three distinct vertices.
+   ``children`` exist, no vertex is listed twice, every vertex is used, every ring has three distinct vertices and
+   repeats none;
+3. geometry: every surface valid in its own plane and not a sliver (:mod:`lidarmap.export.geomcheck`), what the tools
+   that triangulate CityJSON (cjio's OBJ/glTF export, QGIS) need.
 """
 
 from __future__ import annotations
@@ -19,7 +22,10 @@ from collections.abc import Iterator
 from importlib import resources
 from typing import Any
 
+import numpy as np
+
 from lidarmap.errors import LidarmapError
+from lidarmap.export.geomcheck import MIN_AREA, surface_problems
 
 __all__ = ["SCHEMA_NAME", "cityjson_schema", "validate_cityjson"]
 
@@ -93,19 +99,34 @@ def _semantic_problems(geometry: dict[str, Any], where: str, positions: list[tup
     return problems
 
 
-def _geometry_problems(geometry: dict[str, Any], where: str, n_vertices: int) -> list[str]:
+def _geometry_problems(geometry: dict[str, Any], where: str, vertices: np.ndarray, min_area: float) -> list[str]:
     problems = []
     positions = []
     for position, surface in _surfaces(geometry):
         positions.append(position)
-        for r, ring in enumerate(surface if isinstance(surface, list) else []):
-            if not isinstance(ring, list):
-                continue
-            if any(not isinstance(i, int) or not 0 <= i < n_vertices for i in ring):
+        rings = [ring for ring in (surface if isinstance(surface, list) else []) if isinstance(ring, list)]
+        missing = False
+        for r, ring in enumerate(rings):
+            if any(not isinstance(i, int) or not 0 <= i < len(vertices) for i in ring):
                 problems.append(f"{where}: surface {list(position)} ring {r} refers to a missing vertex")
+                missing = True
             elif len(set(ring)) < 3:
                 problems.append(f"{where}: surface {list(position)} ring {r} has fewer than 3 distinct vertices")
+                missing = True
+            elif len(set(ring)) != len(ring):
+                problems.append(f"{where}: surface {list(position)} ring {r} repeats a vertex")
+        if rings and not missing:
+            for problem in surface_problems([vertices[ring] for ring in rings], min_area):
+                problems.append(f"{where}: surface {list(position)}: {problem}")
     return problems + _semantic_problems(geometry, where, positions)
+
+
+def _used_vertices(boundaries: Any, used: set[int]) -> None:
+    for part in boundaries:
+        if isinstance(part, list):
+            _used_vertices(part, used)
+        elif isinstance(part, int):
+            used.add(part)
 
 
 def _reference_problems(doc: dict[str, Any]) -> list[str]:
@@ -114,13 +135,20 @@ def _reference_problems(doc: dict[str, Any]) -> list[str]:
     if len({tuple(v) for v in vertices if isinstance(v, list)}) != len(vertices):
         problems.append("vertices: some vertices are listed more than once")
     objects = doc.get("CityObjects", {})
+    scale = np.asarray(doc.get("transform", {}).get("scale", [1.0, 1.0, 1.0]), dtype=np.float64)
+    coords = np.asarray(vertices, dtype=np.float64).reshape(-1, 3) * scale  # the translate changes no shape
+    used: set[int] = set()
     for oid, obj in objects.items():
         for key, back in (("parents", "children"), ("children", "parents")):
             for other in obj.get(key, []):
                 if other not in objects or oid not in objects[other].get(back, []):
                     problems.append(f"CityObjects/{oid}: {key} names {other!r}, which does not link back")
         for g, geometry in enumerate(obj.get("geometry", [])):
-            problems += _geometry_problems(geometry, f"CityObjects/{oid}/geometry/{g}", len(vertices))
+            problems += _geometry_problems(geometry, f"CityObjects/{oid}/geometry/{g}", coords, MIN_AREA)
+            _used_vertices(geometry.get("boundaries", []), used)
+    unused = len(vertices) - len(used & set(range(len(vertices))))
+    if unused:
+        problems.append(f"vertices: {unused} of {len(vertices)} vertices are used by no surface")
     return problems
 
 

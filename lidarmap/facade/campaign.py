@@ -34,6 +34,8 @@ class CampaignData:
     ground_index: _XYIndex | None = None
     ground_ids: np.ndarray | None = None
     source: str | None = None
+    gps: np.ndarray | None = None  # GPS time of every point: orders the returns of one scan line (ray evidence)
+    noise_factor: float = 1.0  # > 1: the campaign's Gaussians are widened in fusion (an estimated sensor path)
 
 
 def campaign_track(trajectory: Trajectory, t_min: float, t_max: float, step: float) -> np.ndarray:
@@ -59,7 +61,8 @@ def campaign_data(xyz: np.ndarray, gps: np.ndarray, ground: np.ndarray, building
     sensors[nonground] = trajectory.position_at(gps[nonground])  # InputError when the trajectory misses them
     camp = CampaignData(xyz=xyz, sensors=sensors, ground=ground, building=building,
                         nonground_index=_XYIndex(xyz[nonground, :2], params.occlusion.index_bin, origin),
-                        nonground_ids=nonground, limits=limits, track=track, source=source)
+                        nonground_ids=nonground, limits=limits, track=track, source=source,
+                        gps=np.asarray(gps, dtype=np.float64))
     ground_ids = np.flatnonzero(ground)
     if len(ground_ids):
         camp.ground_index, camp.ground_ids = _XYIndex(xyz[ground_ids, :2], params.occlusion.index_bin, origin), ground_ids

@@ -82,11 +82,11 @@ def match_facade(f: Facade, truth_facades: list, register: Callable | None = Non
     for tf in truth_facades:
         if float(tf.normal @ f.frame.normal) < math.cos(math.radians(10.0)):
             continue
-        std = tf.to_facade(centre)[0]
-        if abs(std[2]) > 1.0 or std[0] < -1.0 or std[0] > tf.width + 1.0:
+        sdt = tf.to_facade(centre)[0]
+        if abs(sdt[2]) > 1.0 or sdt[0] < -1.0 or sdt[0] > tf.width + 1.0:
             continue
-        if abs(std[2]) < best_d:
-            best, best_d = tf, abs(std[2])
+        if abs(sdt[2]) < best_d:
+            best, best_d = tf, abs(sdt[2])
     return best
 
 
@@ -108,6 +108,77 @@ def union_visibility(truth, campaigns: list[int]) -> dict[int, float]:
     return out
 
 
+class _Tally:
+    """Counts of one scoring run: tp/fp/fn per kind, window IoUs, plane errors, the truth façades matched."""
+
+    def __init__(self) -> None:
+        self.counts = {k: {"tp": 0, "fp": 0, "fn": 0} for k in SCORED_KINDS}
+        self.ious: list[float] = []
+        self.offsets: list[float] = []
+        self.angles: list[float] = []
+        self.matched_truth: set[int] = set()
+        self.n_facades = 0
+
+    def summary(self) -> dict:
+        out: dict = {"facades": self.n_facades, "matched_facades": len(self.matched_truth)}
+        for kind, c in self.counts.items():
+            p = c["tp"] / max(1, c["tp"] + c["fp"])
+            r = c["tp"] / max(1, c["tp"] + c["fn"])
+            out[kind] = {**c, "precision": p, "recall": r, "f1": 2 * p * r / max(1e-12, p + r)}
+        out["window_mean_iou"] = float(np.mean(self.ious)) if self.ious else 0.0
+        out["offset_mean"] = float(np.mean(self.offsets)) if self.offsets else math.nan
+        out["offset_max"] = float(np.max(self.offsets)) if self.offsets else math.nan
+        out["angle_max_deg"] = float(np.max(self.angles)) if self.angles else math.nan
+        return out
+
+
+def _plane_errors(f: Facade, tf, register: Callable | None, tally: _Tally) -> None:
+    """Offset (mean distance of the extent corners to the truth plane) and angle of a matched façade."""
+    s0, s1, t0, t1 = f.extent
+    corners = f.frame.to_crs(np.array([[s0, t0, 0.0], [s1, t0, 0.0], [s0, t1, 0.0], [s1, t1, 0.0]]))
+    if register is not None:
+        corners = register(corners)
+    tally.offsets.append(float(np.mean(np.abs(tf.to_facade(corners)[:, 2]))))
+    tally.angles.append(math.degrees(math.acos(min(1.0, abs(float(tf.normal @ f.frame.normal))))))
+
+
+def _score_kind(pred: list[Polygon], true: list, visible: list[bool], kind: str, iou: float, tally: _Tally) -> None:
+    """Greedy matches of one kind on one façade; predictions on hardly visible truth count neither way."""
+    matches = greedy_match(pred, [e.polygon for e in true], iou)
+    matched_p = {i for i, _, _ in matches}
+    matched_t = {j for _, j, _ in matches}
+    c = tally.counts[kind]
+    for _, j, value in matches:
+        if visible[j]:
+            c["tp"] += 1
+            if kind == "window":
+                tally.ious.append(value)
+    for i, p in enumerate(pred):
+        if i in matched_p:
+            continue
+        if any(not visible[j] and polygon_iou(p, true[j].polygon) > 0.1 for j in range(len(true))):
+            continue
+        c["fp"] += 1
+    c["fn"] += sum(1 for j in range(len(true)) if visible[j] and j not in matched_t)
+
+
+def _score_facade(f: Facade, tb, register: Callable | None, iou: float, is_visible: Callable, tally: _Tally) -> None:
+    """One extracted façade against its building's truth: all its elements false when it matches no truth façade."""
+    tally.n_facades += 1
+    tf = match_facade(f, tb.facades, register) if tb is not None else None
+    preds = [e for e in f.elements if e.kind.value in SCORED_KINDS]
+    if tf is None:
+        for e in preds:
+            tally.counts[e.kind.value]["fp"] += 1
+        return
+    tally.matched_truth.add(tf.id)
+    _plane_errors(f, tf, register, tally)
+    for kind in SCORED_KINDS:
+        pred = [_to_truth_rect(f, e.polygon, tf, register) for e in preds if e.kind.value == kind]
+        true = [e for e in tf.elements if e.kind == kind]
+        _score_kind(pred, true, [is_visible(e) for e in true], kind, iou, tally)
+
+
 def evaluate_facades(buildings: list[ObservedBuilding], truth, campaign_id: int, register: Callable | None = None,
                      iou: float = 0.5, min_visible: float = 0.9, campaigns: list[int] | None = None) -> dict:
     """Window and door precision/recall/F1, mean IoU, plane offset and angle errors (see the module doc).
@@ -116,70 +187,23 @@ def evaluate_facades(buildings: list[ObservedBuilding], truth, campaign_id: int,
     """
     union = union_visibility(truth, campaigns) if campaigns else None
 
-    def vis(e) -> float:
-        return union.get(e.id, 0.0) if union is not None else e.visible_fraction.get(campaign_id, 0.0)
+    def is_visible(e) -> bool:
+        fraction = union.get(e.id, 0.0) if union is not None else e.visible_fraction.get(campaign_id, 0.0)
+        return fraction >= min_visible
 
-    counts = {k: {"tp": 0, "fp": 0, "fn": 0} for k in SCORED_KINDS}
-    ious: list[float] = []
-    offsets: list[float] = []
-    angles: list[float] = []
-    matched_truth: set[int] = set()
+    tally = _Tally()
     by_building = {str(b.id): b for b in truth.buildings}
-    n_facades = 0
     for b in buildings:
-        tb = by_building.get(str(b.building_id))
         for f in b.facades:
-            n_facades += 1
-            tf = match_facade(f, tb.facades, register) if tb is not None else None
-            preds = [e for e in f.elements if e.kind.value in SCORED_KINDS]
-            if tf is None:
-                for e in preds:
-                    counts[e.kind.value]["fp"] += 1
-                continue
-            matched_truth.add(tf.id)
-            s0, s1, t0, t1 = f.extent
-            corners = f.frame.to_crs(np.array([[s0, t0, 0.0], [s1, t0, 0.0], [s0, t1, 0.0], [s1, t1, 0.0]]))
-            if register is not None:
-                corners = register(corners)
-            offsets.append(float(np.mean(np.abs(tf.to_facade(corners)[:, 2]))))
-            angles.append(math.degrees(math.acos(min(1.0, abs(float(tf.normal @ f.frame.normal))))))
-            for kind in SCORED_KINDS:
-                pred = [_to_truth_rect(f, e.polygon, tf, register) for e in preds if e.kind.value == kind]
-                true = [e for e in tf.elements if e.kind == kind]
-                visible = [vis(e) >= min_visible for e in true]
-                matches = greedy_match(pred, [e.polygon for e in true], iou)
-                matched_p = {i for i, _, _ in matches}
-                matched_t = {j for _, j, _ in matches}
-                c = counts[kind]
-                for i, j, value in matches:
-                    if visible[j]:
-                        c["tp"] += 1
-                        if kind == "window":
-                            ious.append(value)
-                for i, p in enumerate(pred):
-                    if i in matched_p:
-                        continue
-                    if any(not visible[j] and polygon_iou(p, true[j].polygon) > 0.1 for j in range(len(true))):
-                        continue
-                    c["fp"] += 1
-                c["fn"] += sum(1 for j in range(len(true)) if visible[j] and j not in matched_t)
-    for tb in truth.buildings:
+            _score_facade(f, by_building.get(str(b.building_id)), register, iou, is_visible, tally)
+    for tb in truth.buildings:  # truth façades nobody found: their visible openings are missed
         for tf in tb.facades:
-            if tf.id in matched_truth:
+            if tf.id in tally.matched_truth:
                 continue
             for e in tf.elements:
-                if e.kind in counts and vis(e) >= min_visible:
-                    counts[e.kind]["fn"] += 1
-    out: dict = {"facades": n_facades, "matched_facades": len(matched_truth)}
-    for kind, c in counts.items():
-        p = c["tp"] / max(1, c["tp"] + c["fp"])
-        r = c["tp"] / max(1, c["tp"] + c["fn"])
-        out[kind] = {**c, "precision": p, "recall": r, "f1": 2 * p * r / max(1e-12, p + r)}
-    out["window_mean_iou"] = float(np.mean(ious)) if ious else 0.0
-    out["offset_mean"] = float(np.mean(offsets)) if offsets else math.nan
-    out["offset_max"] = float(np.max(offsets)) if offsets else math.nan
-    out["angle_max_deg"] = float(np.max(angles)) if angles else math.nan
-    return out
+                if e.kind in tally.counts and is_visible(e):
+                    tally.counts[e.kind]["fn"] += 1
+    return tally.summary()
 
 
 def map_statistics(buildings: list[ObservedBuilding]) -> dict:

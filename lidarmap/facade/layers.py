@@ -70,16 +70,16 @@ def cell_index(s: np.ndarray, t: np.ndarray, cell: float, s0: float, t0: float,
     return np.where(out, -1, row), np.where(out, -1, col)
 
 
-def depth_grid(std: np.ndarray, cell: float, extent: tuple[float, float, float, float]) -> DepthGrid:
+def depth_grid(sdt: np.ndarray, cell: float, extent: tuple[float, float, float, float]) -> DepthGrid:
     """Rasterise façade points (s, t, d) on a ``cell`` grid over ``extent``: counts and mean depth per cell."""
-    std = np.asarray(std, dtype=np.float64).reshape(-1, 3)
+    sdt = np.asarray(sdt, dtype=np.float64).reshape(-1, 3)
     shape = grid_shape(extent, cell)
-    row, col = cell_index(std[:, 0], std[:, 1], cell, extent[0], extent[2], shape)
+    row, col = cell_index(sdt[:, 0], sdt[:, 1], cell, extent[0], extent[2], shape)
     inside = row >= 0
     flat = row[inside] * shape[1] + col[inside]
     size = shape[0] * shape[1]
     count = np.bincount(flat, minlength=size)
-    total = np.bincount(flat, weights=std[inside, 2], minlength=size)
+    total = np.bincount(flat, weights=sdt[inside, 2], minlength=size)
     with np.errstate(invalid="ignore", divide="ignore"):
         depth = np.where(count > 0, total / np.maximum(count, 1), np.nan)
     return DepthGrid(cell, float(extent[0]), float(extent[2]), count.reshape(shape), depth.reshape(shape), row, col)

@@ -19,6 +19,7 @@ See docs/facade.md for the parameters and their defaults.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import time
 
@@ -26,7 +27,17 @@ import numpy as np
 from scipy import ndimage
 from shapely.geometry import box
 
+from lidarmap.executor import derive_seed
 from lidarmap.facade.campaign import CampaignData
+from lidarmap.facade.evidence import (
+    CellEvidence,
+    cell_evidence,
+    local_wall_depth,
+    missed_pulse_crossings,
+    opaque_cells,
+    opening_cells,
+    vote_weights,
+)
 from lidarmap.facade.layers import (
     DepthGrid,
     assign_layers,
@@ -91,6 +102,12 @@ __all__ = ["FacadeParams", "CampaignData", "building_facades", "extract_facade",
 # ----------------------------------------------------------------------------------------------------------------------
 # Helpers
 
+log = logging.getLogger(__name__)
+_WARNED_SOURCES: set[str] = set()
+
+#: Spawn key of the observation's own random stream (occlusion spacing, outline samples) under the façade's seed.
+_OBSERVE_STREAM = 7
+
 
 def _equalised_sample(flat: np.ndarray, per_cell: int, max_samples: int, rng: np.random.Generator) -> np.ndarray:
     """Indices keeping at most ``per_cell`` random points per cell id, then at most ``max_samples`` of them."""
@@ -107,12 +124,12 @@ def _equalised_sample(flat: np.ndarray, per_cell: int, max_samples: int, rng: np
     return chosen
 
 
-def layer_fit(std: np.ndarray, cell: float, params: FacadeParams, rng: np.random.Generator,
+def layer_fit(sdt: np.ndarray, cell: float, params: FacadeParams, rng: np.random.Generator,
                seed: int) -> list[Layer]:
     """GMM layers over a density-equalised sample of façade points (at most gmm_points_per_cell per grid cell)."""
-    keys = np.floor(std[:, 0] / cell).astype(np.int64) * 1_000_003 + np.floor(std[:, 1] / cell).astype(np.int64)
+    keys = np.floor(sdt[:, 0] / cell).astype(np.int64) * 1_000_003 + np.floor(sdt[:, 1] / cell).astype(np.int64)
     sample = _equalised_sample(keys, params.layers.gmm_points_per_cell, params.layers.gmm_max_samples, rng)
-    return fit_layers(std[sample, 2], params, seed=seed)
+    return fit_layers(sdt[sample, 2], params, seed=seed)
 
 
 def _main_layer(layers: list[Layer]) -> Layer:
@@ -175,7 +192,7 @@ def building_facades(camp: CampaignData, ids: np.ndarray, polygon, params: Facad
         members = ids[best == g_i]
         if len(members) < params.planes.min_facade_points:
             continue
-        facade = extract_facade(camp, members, g, polygon, params, campaign_id, seed * 31 + g_i, tm)
+        facade = extract_facade(camp, members, g, polygon, params, campaign_id, derive_seed(seed, g_i), tm)
         if facade is not None:
             facade.facade_id = len(facades)
             facades.append(facade)
@@ -185,8 +202,8 @@ def building_facades(camp: CampaignData, ids: np.ndarray, polygon, params: Facad
 def _orient(frame: FacadeFrame, polygon, xyz: np.ndarray, sensors: np.ndarray,
             params: FacadeParams) -> FacadeFrame:
     """Orient the frame's normal outwards: the footprint interior behind it, else the sensors in front of it."""
-    std = frame.to_facade(xyz)
-    s_range = (float(std[:, 0].min()), float(std[:, 0].max()))
+    sdt = frame.to_facade(xyz)
+    s_range = (float(sdt[:, 0].min()), float(sdt[:, 0].max()))
     outward = None
     if polygon is not None:
         _, outward = match_footprint_edge(frame, s_range, polygon, params)
@@ -210,36 +227,36 @@ def extract_facade(camp: CampaignData, member_ids: np.ndarray, group: PlaneGroup
     n2 = group.plane.normal
     frame = FacadeFrame(origin=np.array([*(-group.plane.c * n2), 0.0]), u=np.array([-n2[1], n2[0], 0.0]))
     frame = _orient(frame, polygon, xyz, sensors, params)
-    std = frame.to_facade(xyz)
+    sdt = frame.to_facade(xyz)
     lo, hi = group.d_min - params.layers.layer_back, group.d_max + params.layers.layer_front
     if frame.normal[:2] @ n2 < 0:  # flipped: depths of the members flip too
         lo, hi = -group.d_max - params.layers.layer_back, -group.d_min + params.layers.layer_front
-    keep = (std[:, 2] >= lo) & (std[:, 2] <= hi)
+    keep = (sdt[:, 2] >= lo) & (sdt[:, 2] <= hi)
     for _ in range(max(1, params.layers.refine_iterations)):
         if keep.sum() < params.planes.min_facade_points:
             return None
-        main = _main_layer(layer_fit(std[keep], cell, params, rng, seed))
-        inl = keep & (np.abs(std[:, 2] - main.mu) <= params.layers.sigma_k * main.sigma)
+        main = _main_layer(layer_fit(sdt[keep], cell, params, rng, seed))
+        inl = keep & (np.abs(sdt[:, 2] - main.mu) <= params.layers.sigma_k * main.sigma)
         if inl.sum() < 3:
             return None
         normal2, c = fit_line_2d(xyz[inl, :2])  # PCA: smallest eigenvector of the inliers, horizontal
         if normal2 @ frame.normal[:2] < 0:
             normal2, c = -normal2, -c
         frame = FacadeFrame(origin=np.array([*(-c * normal2), 0.0]), u=np.array([-normal2[1], normal2[0], 0.0]))
-        std = frame.to_facade(xyz)
-        keep = (std[:, 2] >= -params.layers.layer_back) & (std[:, 2] <= params.layers.layer_front)
+        sdt = frame.to_facade(xyz)
+        keep = (sdt[:, 2] >= -params.layers.layer_back) & (sdt[:, 2] <= params.layers.layer_front)
     if keep.sum() < params.planes.min_facade_points:
         return None
-    layers = layer_fit(std[keep], cell, params, rng, seed)
+    layers = layer_fit(sdt[keep], cell, params, rng, seed)
     main = _main_layer(layers)
-    on_main = keep & (assign_layers(std[:, 2], layers, params.layers.sigma_k) == layers.index(main))
+    on_main = keep & (assign_layers(sdt[:, 2], layers, params.layers.sigma_k) == layers.index(main))
     if on_main.sum() < params.planes.min_facade_points:
         return None
     # the frame: d = 0 on the main layer, origin at the bottom-left of its points (robust quantiles)
-    s_lo, s_hi = np.quantile(std[on_main, 0], [0.001, 0.999])
-    t_lo = float(np.quantile(std[on_main, 1], 0.001))
-    on_any = keep & (assign_layers(std[:, 2], layers, params.layers.sigma_k) >= 0)
-    t_hi = float(np.quantile(std[on_any, 1], 0.999))
+    s_lo, s_hi = np.quantile(sdt[on_main, 0], [0.001, 0.999])
+    t_lo = float(np.quantile(sdt[on_main, 1], 0.001))
+    on_any = keep & (assign_layers(sdt[:, 2], layers, params.layers.sigma_k) >= 0)
+    t_hi = float(np.quantile(sdt[on_any, 1], 0.999))
     frame = FacadeFrame(origin=frame.to_crs(np.array([[s_lo, t_lo, main.mu]]))[0], u=frame.u)
     length, height = float(s_hi - s_lo), float(t_hi - t_lo)
     if length < params.planes.min_facade_length or height <= cell:
@@ -249,6 +266,338 @@ def extract_facade(camp: CampaignData, member_ids: np.ndarray, group: PlaneGroup
     tm["layers"] = tm.get("layers", 0.0) + time.perf_counter() - clock
     return observe_facade(camp, frame, (0.0, length, 0.0, height), params, campaign_id, seed=seed,
                           polygon=polygon, member_ids=member_ids, layers=layers, tm=tm)
+
+
+@dataclasses.dataclass
+class _Surface:
+    """One campaign's points on a façade and the 2.5D grid they make (steps "layers" and "grid" of
+    :func:`observe_facade`)."""
+
+    extent: tuple[float, float, float, float]
+    cell: float
+    sdt: np.ndarray  # (n, 3) the points in façade coordinates
+    sensors: np.ndarray  # (n, 3) their sensor positions (CRS)
+    labels: np.ndarray  # (n,) layer index, -1 outside every layer
+    layers: list[Layer]
+    main_idx: int
+    grid: DepthGrid | None = None
+    dominant: np.ndarray | None = None  # (rows, cols) the layer seen in each cell, -1 none
+    observed_raw: np.ndarray | None = None  # cells holding a point
+    observed: np.ndarray | None = None  # the same with sampling gaps closed
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return grid_shape(self.extent, self.cell)
+
+    @property
+    def main(self) -> Layer:
+        return self.layers[self.main_idx]
+
+
+def _campaign_members(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, float, float, float],
+                      params: FacadeParams) -> np.ndarray:
+    """The campaign's building points within [-layer_back, layer_front] of the plane over the extent."""
+    s0, s1, t0, t1 = extent
+    margin, back, front = params.planes.facade_margin, params.layers.layer_back, params.layers.layer_front
+    corners = frame.to_crs(np.array([[s0 - margin, 0, -back], [s1 + margin, 0, -back],
+                                     [s0 - margin, 0, front], [s1 + margin, 0, front]]))
+    x0, y0 = corners[:, :2].min(axis=0)
+    x1, y1 = corners[:, :2].max(axis=0)
+    ids = camp.nonground_ids[camp.nonground_index.query_box(x0, y0, x1, y1)]
+    ids = ids[camp.building[ids]]
+    sdt = frame.to_facade(camp.xyz[ids])
+    ok = (sdt[:, 2] >= -back) & (sdt[:, 2] <= front) & (sdt[:, 0] >= s0 - margin) & (sdt[:, 0] <= s1 + margin)
+    ok &= (sdt[:, 1] >= t0 - 1.0) & (sdt[:, 1] <= t1 + 1.0)
+    return ids[ok]
+
+
+def _surface_layers(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, float, float, float],
+                    member_ids: np.ndarray, layers: list[Layer] | None, params: FacadeParams, campaign_id: int,
+                    rng: np.random.Generator, seed: int) -> _Surface | None:
+    """Step "layers": the members in façade coordinates, their depth layers (given, or a GMM fitted here) and each
+    point's layer; ``None`` with too few points on the plane."""
+    s0, s1 = extent[0], extent[1]
+    margin = params.planes.facade_margin
+    sdt = frame.to_facade(camp.xyz[member_ids])
+    keep = (sdt[:, 2] >= -params.layers.layer_back) & (sdt[:, 2] <= params.layers.layer_front)
+    keep &= (sdt[:, 0] >= s0 - margin) & (sdt[:, 0] <= s1 + margin)
+    if keep.sum() < params.planes.min_facade_points:
+        return None
+    if layers is None:
+        layers = layer_fit(sdt[keep], params.layers.cell, params, rng, seed)
+    layers = [dataclasses.replace(la, layer_id=i, campaigns=[campaign_id]) for i, la in enumerate(layers)]
+    main_idx = layers.index(_main_layer(layers))
+    labels = np.full(len(sdt), -1, dtype=np.int64)
+    labels[keep] = assign_layers(sdt[keep, 2], layers, params.layers.sigma_k)
+    return _Surface(extent=extent, cell=params.layers.cell, sdt=sdt, sensors=camp.sensors[member_ids],
+                    labels=labels, layers=layers, main_idx=main_idx)
+
+
+def _surface_grid(surf: _Surface, params: FacadeParams) -> bool:
+    """Step "grid": per cell the points of each layer, the layer seen there (its front-most layer with a real share
+    of its points: layers are sorted deepest first, so a wall hides what lies behind it in the same cell, room
+    ceilings seen through a window, and a balcony hides the wall) and the observed cells. False when no point
+    falls on the grid."""
+    shape = surf.shape
+    inside = surf.labels >= 0
+    surf.grid = depth_grid(surf.sdt[inside], surf.cell, surf.extent)
+    flat = surf.grid.flat()
+    ok = flat >= 0
+    per_layer = np.zeros((len(surf.layers), shape[0] * shape[1]), dtype=np.int64)
+    np.add.at(per_layer, (surf.labels[inside][ok], flat[ok]), 1)
+    count = per_layer.sum(axis=0).reshape(shape)
+    if not (count > 0).any():
+        return False
+    present = (per_layer >= 2) & (per_layer >= params.layers.layer_cell_share * per_layer.sum(axis=0))
+    present[surf.main_idx] = per_layer[surf.main_idx] >= 2  # any real wall sample hides what is behind it
+    front_most = len(surf.layers) - 1 - np.argmax(present[::-1], axis=0)
+    fallback = np.where(count.ravel() > 0, np.argmax(per_layer, axis=0), -1)
+    surf.dominant = np.where(present.any(axis=0), front_most, fallback).reshape(shape)
+    surf.observed_raw = count > 0
+    surf.observed = close_sampling_gaps(count, surf.cell, params.objects.close_cells, params.objects.max_close_cells)
+    return True
+
+
+def _around_ids(camp: CampaignData, frame: FacadeFrame, surf: _Surface,
+                params: FacadeParams) -> tuple[np.ndarray, np.ndarray]:
+    """Every non-ground point (any class) in the slab between the farthest sensor and ``through_max_depth`` behind
+    the plane (occluders in front, seen-through points behind), and the ground points under that slab."""
+    s0, s1 = surf.extent[0], surf.extent[1]
+    front = surf.sensors @ frame.normal - frame.normal @ frame.origin
+    front_dist = float(min(np.nanquantile(front, 0.99) + 1.0,
+                           camp.limits[0] * params.occlusion.reach_margin + 1.0))
+    back = params.occlusion.through_max_depth
+    corners = frame.to_crs(np.array([[s0, 0, front_dist], [s1, 0, front_dist], [s0, 0, -back], [s1, 0, -back]]))
+    x0, y0 = corners[:, :2].min(axis=0) - 1.0
+    x1, y1 = corners[:, :2].max(axis=0) + 1.0
+    around = camp.nonground_ids[camp.nonground_index.query_box(x0, y0, x1, y1)]
+    ground = np.zeros(0, dtype=np.int64)
+    if camp.ground_index is not None:
+        ground = camp.ground_ids[camp.ground_index.query_box(x0, y0, x1, y1)]
+    return around, ground
+
+
+@dataclasses.dataclass
+class _Visibility:
+    """What the scanner could see of each cell (step "occlusion"): the value grid and its parts."""
+
+    values: np.ndarray  # HOLE / OCCLUDED / OBJECT per cell
+    ground_t: np.ndarray  # ground height (façade t) per column
+    below: np.ndarray  # cells below the ground line
+    unsampled: np.ndarray  # cells no pulse reached although nothing hid them: not observed, not an occlusion
+    weights: np.ndarray  # the campaign's vote weight per cell (1..4)
+    opaque: np.ndarray | None = None  # cells closed by a surface just behind the wall (door leaves, curtains)
+
+
+def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens: np.ndarray, around: np.ndarray,
+                  ground_ids: np.ndarray, frame: FacadeFrame, params: FacadeParams) -> CellEvidence:
+    """Pulses per cell on the wall, through it and missed (:mod:`lidarmap.facade.evidence`)."""
+    shape, cell = surf.shape, surf.cell
+    s0, t0 = surf.extent[0], surf.extent[2]
+    d = surf.sdt[:, 2]
+    inside = (d >= -params.layers.layer_back) & (d <= params.layers.layer_front)  # any layer or none: a leaf too
+    rel = d - local_wall_depth(surf.sdt, s0, params)
+    pass_depth = params.evidence.pass_depth
+    sens_sdt = frame.to_facade(surf.sensors)
+    on_wall = inside & (np.abs(rel) <= pass_depth)
+    recessed = inside & (rel < -pass_depth)
+    deep = a_sdt[:, 2] < -params.layers.layer_back
+    behind_sdt = np.concatenate([surf.sdt[recessed], a_sdt[deep]])
+    behind_sens = np.concatenate([sens_sdt[recessed], a_sens[deep]])
+    is_deep = np.r_[np.zeros(int(recessed.sum()), bool), np.ones(int(deep.sum()), bool)]
+    missed: tuple | None = None
+    if camp.gps is not None:
+        ids = np.concatenate([around, ground_ids])
+        seq_sdt = np.concatenate([a_sdt, frame.to_facade(camp.xyz[ground_ids])])
+        seq_sens = np.concatenate([a_sens, np.full((len(ground_ids), 3), np.nan)])
+        max_range = camp.limits[0] * params.occlusion.reach_margin
+        missed = missed_pulse_crossings(seq_sdt, seq_sens, camp.gps[ids], max_range, params)
+    ev = cell_evidence(surf.sdt[on_wall], sens_sdt[on_wall], behind_sdt, behind_sens, is_deep,
+                       missed if missed is not None else (np.zeros(0),) * 3, shape, s0, t0, cell)
+    ev.pulse_order = missed is not None
+    return ev
+
+
+def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: FacadeParams,
+                rng: np.random.Generator) -> _Visibility:
+    """Step "occlusion": shadows of the points in front, cells the laser went through (ray evidence, or the
+    paper's rule: every reachable unobserved cell), the scanner's reach and the ground line give the value grid
+    (hole / occluded / object)."""
+    shape, cell = surf.shape, surf.cell
+    s0, s1, t0, _ = surf.extent
+    around, ground_ids = _around_ids(camp, frame, surf, params)
+    a_sdt, a_sens = frame.to_facade(camp.xyz[around]), frame.to_facade(camp.sensors[around])
+    fg = (a_sdt[:, 2] > params.occlusion.occluder_min_depth) & (a_sdt[:, 2] < a_sens[:, 2])
+    fg_spacing = sample_spacing(a_sdt[fg], rng=rng) if fg.any() else 0.0
+    occluded = occlusion_mask(a_sdt[fg], a_sens[fg], shape, s0, t0, cell, params, spacing=fg_spacing)
+    behind = a_sdt[:, 2] < -params.layers.layer_back
+    through = through_cells(a_sdt[behind], a_sens[behind], shape, s0, t0, cell) > 0
+    reachable = reach_mask(frame.to_facade(camp.track), shape, s0, t0, cell, camp.limits, params)
+    ev = _ray_evidence(camp, surf, a_sdt, a_sens, around, ground_ids, frame, params)
+    ray = params.evidence.ray_evidence and ev.pulse_order  # without per-pulse times: the paper's rule
+    if params.evidence.ray_evidence and not ev.pulse_order and camp.source not in _WARNED_SOURCES:
+        _WARNED_SOURCES.add(camp.source)
+        log.warning("%s: GPS times do not order the pulses of a scan line (one time per line?); openings are read "
+                    "from unobserved cells (the paper's rule)", camp.source or "campaign")
+    passed = opening_cells(ev, params) if ray else through
+    observed = surf.observed & ~(passed if ray else (through & ~surf.observed_raw))
+    if params.openings.occlusion_grow_cells > 0:
+        grow = square(params.openings.occlusion_grow_cells)
+        occluded = occluded | (ndimage.binary_dilation(occluded, structure=grow) & ~observed & ~passed)
+    ground_t = _ground_line(camp, frame, s0, s1, t0, shape[1], cell, params)
+    # the ground is never above the lowest wall measured in a column
+    raw = surf.observed_raw
+    lowest = np.where(raw.any(axis=0), t0 + np.argmax(raw, axis=0) * cell, np.inf)
+    ground_t = np.minimum(ground_t, lowest)
+    t_centres = t0 + (np.arange(shape[0]) + 0.5) * cell
+    below = (t_centres[:, None] < ground_t[None, :] - 0.5 * cell) & ~raw
+    hidden = occluded | ~reachable | below
+    unsampled = np.zeros(shape, dtype=bool)
+    if ray:
+        unsampled = ~observed & ~passed & ~hidden
+        hidden = hidden | unsampled
+    values = value_grid(observed, hidden, passed)
+    weights = vote_weights(ev, occluded, params)
+    return _Visibility(values=values, ground_t=ground_t, below=below, unsampled=unsampled, weights=weights,
+                       opaque=opaque_cells(ev, params) if ray else None)
+
+
+class _Elements:
+    """The elements of one observation as they are found, with their evidence cells."""
+
+    def __init__(self, campaign_id: int, shape: tuple[int, int]):
+        self.campaign_id = campaign_id
+        self.items: list[Element] = []
+        self.window_votes = np.zeros(shape, dtype=np.int32)
+        self.door_cells = np.zeros(shape, dtype=bool)  # recessed doors/windows: openings with a surface
+
+    def add(self, kind: ElementKind, poly, layer_id, unc: float, n: int = 0) -> None:
+        self.items.append(Element(element_id=len(self.items), kind=kind, polygon=poly, layer_id=layer_id,
+                                  uncertainty=float(unc), n_points=int(n), campaigns=[self.campaign_id]))
+
+
+def _recessed_kind(cmask: np.ndarray, depths: np.ndarray, vis: _Visibility, surf: _Surface,
+                   params: FacadeParams) -> ElementKind | None:
+    """What a region of a layer behind the wall is: a door leaf on the ground, a window (blinds, glass) above it, a
+    structure, or ``None`` (recessed clutter: reveals, mixed cells, interiors seen through glass)."""
+    cell, t0 = surf.cell, surf.extent[2]
+    op = params.openings
+    rr, cc = np.nonzero(cmask)
+    r_lo, r_hi, c_lo, c_hi = rr.min(), rr.max() + 1, cc.min(), cc.max() + 1
+    width, height = (c_hi - c_lo) * cell, (r_hi - r_lo) * cell
+    fill = cmask.sum() / float((r_hi - r_lo) * (c_hi - c_lo))
+    on_ground = t0 + r_lo * cell <= float(np.mean(vis.ground_t[c_lo:c_hi])) + op.door_leaf_tol  # a leaf
+    spread = 1.4826 * float(np.median(np.abs(depths - np.median(depths))))  # robust σ of the object
+    opening = fill >= op.Ta and min(width, height) >= op.min_opening_size \
+        and width * height <= op.max_opening_area and spread <= params.layers.surface_max_sigma
+    door_sized = on_ground and height >= op.door_min_height
+    if opening and door_sized and width <= op.door_max_width:
+        return ElementKind.DOOR
+    if opening and op.recessed_windows and not door_sized:
+        return ElementKind.WINDOW
+    if spread > params.layers.surface_max_sigma:
+        return None
+    return ElementKind.STRUCTURE
+
+
+def _layer_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: FacadeParams,
+                    rng: np.random.Generator) -> None:
+    """Step "objects": regions of every layer off the wall (eq. 1-2); recessed rectangles become doors/windows."""
+    cell = surf.cell
+    s0, s1, t0, t1 = surf.extent
+    min_cells = max(1, int(math.ceil(params.objects.min_object_area / (cell * cell))))
+    min_width = max(1, int(round(params.objects.min_object_width / cell)))
+    inside = surf.labels >= 0
+    pts_row = np.full(len(surf.sdt), -1, dtype=np.int64)
+    pts_col = np.full(len(surf.sdt), -1, dtype=np.int64)
+    pts_row[inside], pts_col[inside] = surf.grid.row, surf.grid.col
+    for li, layer in enumerate(surf.layers):
+        offset = layer.mu - surf.main.mu
+        if li == surf.main_idx or abs(offset) <= params.layers.structure_min_offset:
+            continue
+        if offset < 0 and params.evidence.ray_evidence:
+            continue  # behind the wall: the ray evidence reads it (openings closed by glass, curtains, leaves)
+        comp, n = grow_regions(surf.dominant == li, params.objects.close_cells, min_cells, min_width)
+        for k in range(1, n + 1):
+            cmask = comp == k
+            sel = (surf.labels == li) & (pts_row >= 0)
+            sel[sel] = cmask[pts_row[sel], pts_col[sel]]
+            if not sel.any():
+                continue
+            kind, poly = ElementKind.STRUCTURE, None
+            unc = uncertainty_eq1(layer.mu, layer.sigma, float(surf.sdt[sel, 2].mean()))[1]
+            if offset < 0:
+                kind = _recessed_kind(cmask, surf.sdt[sel, 2], vis, surf, params)
+                if kind is None:
+                    continue
+            if kind is not ElementKind.STRUCTURE:
+                vals = np.where(cmask, HOLE, np.where(vis.values == OCCLUDED, OCCLUDED, OBJECT))
+                rect, unc = fit_rectangle(cmask, vals, params)
+                b_s0, b_s1, b_t0, b_t1 = refine_bounds(rect, None, s0, t0, cell, params)
+                poly = box(max(b_s0, s0), max(b_t0, t0), min(b_s1, s1), min(b_t1, t1))
+                found.door_cells |= cmask
+            if poly is None:
+                st = surf.sdt[sel, :2]
+                if len(st) > params.objects.max_outline_points:
+                    st = st[rng.choice(len(st), size=params.objects.max_outline_points, replace=False)]
+                poly = outline_polygon(st, cell, params.objects.concave_ratio)
+            if poly is not None:
+                found.add(kind, poly, layer.layer_id, unc, int(sel.sum()))
+    found.window_votes[found.door_cells] = vis.weights[found.door_cells]
+    vis.values[found.door_cells] = OBJECT  # a door leaf is not a hole of the wall for the window search
+
+
+def _hole_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: FacadeParams) -> None:
+    """Step "openings": holes of the value grid -> windows/doors (eq. 3) or unknown regions, then the occluded
+    regions as unknown regions."""
+    cell = surf.cell
+    s0, s1, t0, t1 = surf.extent
+    wall_st = surf.sdt[surf.labels == surf.main_idx, :2]
+    openings = detect_openings(vis.values, cell, params, ground_t=vis.ground_t, t0=t0, s0=s0, wall_st=wall_st,
+                               opaque=vis.opaque)
+    if params.openings.complete_by_repetition:
+        complete_by_repetition(openings, vis.values, s0, t0, cell, params)
+    for op in openings:
+        if op.kind in (ElementKind.WINDOW, ElementKind.DOOR) and op.bounds is not None:
+            b_s0, b_s1, b_t0, b_t1 = op.bounds
+            found.add(op.kind, box(max(b_s0, s0), max(b_t0, t0), min(b_s1, s1), min(b_t1, t1)), None,
+                      op.uncertainty)
+            found.window_votes[op.mask] = vis.weights[op.mask]
+            continue
+        if op.window_evidence:
+            found.window_votes[op.mask] = vis.weights[op.mask]
+        for poly in mask_to_polygons(op.mask, s0, t0, cell):
+            found.add(ElementKind.UNKNOWN, poly, None, math.inf)
+    min_unknown = max(1, int(math.ceil(params.openings.min_unknown_area / (cell * cell))))
+    occ_comp, n_occ = grow_regions((vis.values == OCCLUDED) & ~vis.below & ~vis.unsampled, 0, min_unknown)
+    for k in range(1, n_occ + 1):
+        for poly in mask_to_polygons(occ_comp == k, s0, t0, cell):
+            found.add(ElementKind.UNKNOWN, poly, None, math.inf)
+
+
+def _observation(frame: FacadeFrame, surf: _Surface, vis: _Visibility, found: _Elements, polygon,
+                 params: FacadeParams, campaign_id: int) -> Facade:
+    """Step "evidence": the evidence grids and the façade record of the observation."""
+    s0, s1, t0, t1 = surf.extent
+    seen = (vis.values != OCCLUDED).astype(np.int32)
+    object_votes = np.where((vis.values == OBJECT) & ~found.door_cells, vis.weights, 0).astype(np.int32)
+    evidence = FacadeEvidence(cell=surf.cell, s0=s0, t0=t0, window_votes=found.window_votes,
+                              object_votes=object_votes, seen=seen)
+    edge = match_footprint_edge(frame, (s0, s1), polygon, params)[0] if polygon is not None else None
+    counts = np.bincount(surf.labels[surf.labels >= 0], minlength=len(surf.layers))
+    for la, n in zip(surf.layers, counts):
+        la.n_points = int(n)
+    return Facade(facade_id=0, frame=frame, sigma=float(surf.main.sigma), extent=(s0, s1, t0, t1),
+                  layers=surf.layers, elements=found.items, main_layer=surf.main.layer_id,
+                  n_points=int((surf.labels >= 0).sum()), footprint_edge=edge, campaigns=[campaign_id],
+                  evidence=evidence)
+
+
+def _timed(tm: dict, key: str, clock: float) -> float:
+    """Add the time since ``clock`` to ``tm[key]``; the new clock."""
+    now = time.perf_counter()
+    tm[key] = tm.get(key, 0.0) + now - clock
+    return now
 
 
 def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, float, float, float],
@@ -266,181 +615,21 @@ def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, 
     """
     tm = tm if tm is not None else {}
     clock = time.perf_counter()
-    rng = np.random.default_rng(seed + 7)
-    cell = params.layers.cell
-    s0, s1, t0, t1 = (float(v) for v in extent)
-    margin = params.planes.facade_margin
+    rng = np.random.default_rng(derive_seed(seed, _OBSERVE_STREAM))
+    extent = tuple(float(v) for v in extent)
     if member_ids is None:
-        corners = frame.to_crs(np.array([[s0 - margin, 0, -params.layers.layer_back], [s1 + margin, 0, -params.layers.layer_back],
-                                         [s0 - margin, 0, params.layers.layer_front], [s1 + margin, 0, params.layers.layer_front]]))
-        x0, y0 = corners[:, :2].min(axis=0)
-        x1, y1 = corners[:, :2].max(axis=0)
-        ids = camp.nonground_ids[camp.nonground_index.query_box(x0, y0, x1, y1)]
-        ids = ids[camp.building[ids]]
-        std = frame.to_facade(camp.xyz[ids])
-        ok = (std[:, 2] >= -params.layers.layer_back) & (std[:, 2] <= params.layers.layer_front)
-        ok &= (std[:, 0] >= s0 - margin) & (std[:, 0] <= s1 + margin) & (std[:, 1] >= t0 - 1.0)
-        ok &= std[:, 1] <= t1 + 1.0
-        member_ids = ids[ok]
-    xyz = camp.xyz[member_ids]
-    sensors = camp.sensors[member_ids]
-    std = frame.to_facade(xyz)
-    keep = (std[:, 2] >= -params.layers.layer_back) & (std[:, 2] <= params.layers.layer_front)
-    keep &= (std[:, 0] >= s0 - margin) & (std[:, 0] <= s1 + margin)
-    if keep.sum() < params.planes.min_facade_points:
+        member_ids = _campaign_members(camp, frame, extent, params)
+    surf = _surface_layers(camp, frame, extent, member_ids, layers, params, campaign_id, rng, seed)
+    clock = _timed(tm, "layers", clock)
+    if surf is None or not _surface_grid(surf, params):
         return None
-    if layers is None:
-        layers = layer_fit(std[keep], cell, params, rng, seed)
-    layers = [dataclasses.replace(la, layer_id=i, campaigns=[campaign_id]) for i, la in enumerate(layers)]
-    main = _main_layer(layers)
-    main_idx = layers.index(main)
-    labels = np.full(len(std), -1, dtype=np.int64)
-    labels[keep] = assign_layers(std[keep, 2], layers, params.layers.sigma_k)
-    tm["layers"] = tm.get("layers", 0.0) + time.perf_counter() - clock
-
-    clock = time.perf_counter()
-    shape = grid_shape(extent, cell)
-    rows, cols = shape
-    grid = depth_grid(std[labels >= 0], cell, extent)
-    lab_pts = labels[labels >= 0]
-    flat = grid.flat()
-    ok = flat >= 0
-    per_layer = np.zeros((len(layers), rows * cols), dtype=np.int64)
-    np.add.at(per_layer, (lab_pts[ok], flat[ok]), 1)
-    count = per_layer.sum(axis=0).reshape(shape)
-    if not (count > 0).any():
-        return None
-    # the cell's surface is its front-most layer with a real share of its points (layers are sorted deepest
-    # first): a wall hides what lies behind it in the same cell (room ceilings seen through a window), a balcony
-    # hides the wall
-    present = (per_layer >= 2) & (per_layer >= params.layers.layer_cell_share * per_layer.sum(axis=0))
-    present[main_idx] = per_layer[main_idx] >= 2  # any real wall sample hides what is behind it
-    front_most = len(layers) - 1 - np.argmax(present[::-1], axis=0)
-    dominant = np.where(present.any(axis=0), front_most, np.where(count.ravel() > 0, np.argmax(per_layer, axis=0),
-                                                                   -1)).reshape(shape)
-    observed_raw = count > 0
-    observed = close_sampling_gaps(count, cell, params.objects.close_cells, params.objects.max_close_cells)
-
-    # points around the façade (any class): occluders in front, seen-through points behind
-    front = sensors @ frame.normal - frame.normal @ frame.origin
-    front_dist = float(min(np.nanquantile(front, 0.99) + 1.0, camp.limits[0] * params.occlusion.reach_margin + 1.0))
-    corners = frame.to_crs(np.array([[s0, 0, front_dist], [s1, 0, front_dist],
-                                     [s0, 0, -params.occlusion.through_max_depth], [s1, 0, -params.occlusion.through_max_depth]]))
-    x0, y0 = corners[:, :2].min(axis=0) - 1.0
-    x1, y1 = corners[:, :2].max(axis=0) + 1.0
-    around = camp.nonground_ids[camp.nonground_index.query_box(x0, y0, x1, y1)]
-    a_std = frame.to_facade(camp.xyz[around])
-    a_sens = frame.to_facade(camp.sensors[around])
-    fg = (a_std[:, 2] > params.occlusion.occluder_min_depth) & (a_std[:, 2] < a_sens[:, 2])
-    fg_spacing = sample_spacing(a_std[fg], rng=rng) if fg.any() else 0.0
-    occluded = occlusion_mask(a_std[fg], a_sens[fg], shape, s0, t0, cell, params, spacing=fg_spacing)
-    behind = a_std[:, 2] < -params.layers.layer_back
-    through = through_cells(a_std[behind], a_sens[behind], shape, s0, t0, cell) > 0
-    reachable = reach_mask(frame.to_facade(camp.track), shape, s0, t0, cell, camp.limits, params)
-    observed &= ~(through & ~observed_raw)
-    if params.openings.occlusion_grow_cells > 0:
-        grow = square(params.openings.occlusion_grow_cells)
-        occluded = occluded | (ndimage.binary_dilation(occluded, structure=grow) & ~observed & ~through)
-    ground_t = _ground_line(camp, frame, s0, s1, t0, cols, cell, params)
-    # the ground is never above the lowest wall measured in a column
-    lowest = np.where(observed_raw.any(axis=0), t0 + np.argmax(observed_raw, axis=0) * cell, np.inf)
-    ground_t = np.minimum(ground_t, lowest)
-    t_centres = t0 + (np.arange(rows) + 0.5) * cell
-    below = (t_centres[:, None] < ground_t[None, :] - 0.5 * cell) & ~observed_raw
-    values = value_grid(observed, occluded | ~reachable | below, through)
-    tm["occlusion"] = tm.get("occlusion", 0.0) + time.perf_counter() - clock
-
-    clock = time.perf_counter()
-    elements: list[Element] = []
-    window_votes = np.zeros(shape, dtype=np.int32)
-    min_cells = max(1, int(math.ceil(params.objects.min_object_area / (cell * cell))))
-    min_width = max(1, int(round(params.objects.min_object_width / cell)))
-    g_inside = labels >= 0
-    pts_row = np.full(len(std), -1, dtype=np.int64)
-    pts_col = np.full(len(std), -1, dtype=np.int64)
-    pts_row[g_inside], pts_col[g_inside] = grid.row, grid.col
-    door_cells = np.zeros(shape, dtype=bool)
-
-    def add(kind: ElementKind, poly, layer_id, unc: float, n: int = 0) -> None:
-        elements.append(Element(element_id=len(elements), kind=kind, polygon=poly, layer_id=layer_id,
-                                uncertainty=float(unc), n_points=int(n), campaigns=[campaign_id]))
-
-    for li, layer in enumerate(layers):
-        offset = layer.mu - main.mu
-        if li == main_idx or abs(offset) <= params.layers.structure_min_offset:
-            continue
-        comp, n = grow_regions(dominant == li, params.objects.close_cells, min_cells, min_width)
-        for k in range(1, n + 1):
-            cmask = comp == k
-            sel = (labels == li) & (pts_row >= 0)
-            sel[sel] = cmask[pts_row[sel], pts_col[sel]]
-            if not sel.any():
-                continue
-            kind, poly = ElementKind.STRUCTURE, None
-            unc = uncertainty_eq1(layer.mu, layer.sigma, float(std[sel, 2].mean()))[1]
-            if offset < 0:  # recessed and rectangular: a door leaf on the ground, a window (blinds) above it
-                rr, cc = np.nonzero(cmask)
-                r_lo, r_hi, c_lo, c_hi = rr.min(), rr.max() + 1, cc.min(), cc.max() + 1
-                width, h = (c_hi - c_lo) * cell, (r_hi - r_lo) * cell
-                fill = cmask.sum() / float((r_hi - r_lo) * (c_hi - c_lo))
-                on_ground = t0 + r_lo * cell <= float(np.mean(ground_t[c_lo:c_hi])) + params.openings.door_bottom_tol
-                depths = std[sel, 2]
-                spread = 1.4826 * float(np.median(np.abs(depths - np.median(depths))))  # robust σ of the object
-                opening = fill >= params.openings.Ta and min(width, h) >= params.openings.min_opening_size \
-                    and width * h <= params.openings.max_opening_area and spread <= params.layers.surface_max_sigma
-                if opening and on_ground and h >= params.openings.door_min_height and width <= params.openings.door_max_width:
-                    kind = ElementKind.DOOR
-                elif opening and params.openings.recessed_windows and not (on_ground and h >= params.openings.door_min_height):
-                    kind = ElementKind.WINDOW
-                elif spread > params.layers.surface_max_sigma:
-                    continue  # recessed clutter (reveals, mixed cells, interiors seen through glass): no surface
-                if kind is not ElementKind.STRUCTURE:
-                    vals = np.where(cmask, HOLE, np.where(values == OCCLUDED, OCCLUDED, OBJECT))
-                    rect, unc = fit_rectangle(cmask, vals, params)
-                    b_s0, b_s1, b_t0, b_t1 = refine_bounds(rect, None, s0, t0, cell, params)
-                    poly = box(max(b_s0, s0), max(b_t0, t0), min(b_s1, s1), min(b_t1, t1))
-                    door_cells |= cmask
-            if poly is None:
-                st = std[sel, :2]
-                if len(st) > params.objects.max_outline_points:
-                    st = st[rng.choice(len(st), size=params.objects.max_outline_points, replace=False)]
-                poly = outline_polygon(st, cell, params.objects.concave_ratio)
-            if poly is not None:
-                add(kind, poly, layer.layer_id, unc, int(sel.sum()))
-    window_votes[door_cells] = 1
-    values[door_cells] = OBJECT  # a door leaf is not a hole of the wall for the window search
-
-    wall_st = std[labels == main_idx, :2]
-    openings = detect_openings(values, cell, params, ground_t=ground_t, t0=t0, s0=s0, wall_st=wall_st)
-    if params.openings.complete_by_repetition:
-        complete_by_repetition(openings, values, s0, t0, cell, params)
-    for op in openings:
-        if op.kind in (ElementKind.WINDOW, ElementKind.DOOR) and op.bounds is not None:
-            b_s0, b_s1, b_t0, b_t1 = op.bounds
-            add(op.kind, box(max(b_s0, s0), max(b_t0, t0), min(b_s1, s1), min(b_t1, t1)), None, op.uncertainty)
-            window_votes[op.mask] = 1
-            continue
-        if op.window_evidence:
-            window_votes[op.mask] = 1
-        for poly in mask_to_polygons(op.mask, s0, t0, cell):
-            add(ElementKind.UNKNOWN, poly, None, math.inf)
-    min_unknown = max(1, int(math.ceil(params.openings.min_unknown_area / (cell * cell))))
-    occ_comp, n_occ = grow_regions((values == OCCLUDED) & ~below, 0, min_unknown)
-    for k in range(1, n_occ + 1):
-        for poly in mask_to_polygons(occ_comp == k, s0, t0, cell):
-            add(ElementKind.UNKNOWN, poly, None, math.inf)
-    tm["elements"] = tm.get("elements", 0.0) + time.perf_counter() - clock
-
-    seen = (values != OCCLUDED).astype(np.int32)
-    object_votes = ((values == OBJECT) & ~door_cells).astype(np.int32)
-    evidence = FacadeEvidence(cell=cell, s0=s0, t0=t0, window_votes=window_votes, object_votes=object_votes,
-                              seen=seen)
-    edge = match_footprint_edge(frame, (s0, s1), polygon, params)[0] if polygon is not None else None
-    for la, n in zip(layers, np.bincount(labels[labels >= 0], minlength=len(layers))):
-        la.n_points = int(n)
-    return Facade(facade_id=0, frame=frame, sigma=float(main.sigma), extent=(s0, s1, t0, t1), layers=layers,
-                  elements=elements, main_layer=main.layer_id, n_points=int((labels >= 0).sum()),
-                  footprint_edge=edge, campaigns=[campaign_id], evidence=evidence)
+    vis = _visibility(camp, frame, surf, params, rng)
+    clock = _timed(tm, "occlusion", clock)
+    found = _Elements(campaign_id, surf.shape)
+    _layer_elements(surf, vis, found, params, rng)
+    _hole_elements(surf, vis, found, params)
+    _timed(tm, "elements", clock)
+    return _observation(frame, surf, vis, found, polygon, params, campaign_id)
 
 
 def _ground_line(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, t0: float, cols: int, cell: float,

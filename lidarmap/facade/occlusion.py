@@ -27,24 +27,24 @@ if TYPE_CHECKING:  # pragma: no cover
     from lidarmap.facade.params import FacadeParams
 
 
-def sample_spacing(std: np.ndarray, max_points: int = 20000, rng: np.random.Generator | None = None) -> float:
+def sample_spacing(sdt: np.ndarray, max_points: int = 20000, rng: np.random.Generator | None = None) -> float:
     """Median nearest-neighbour distance of points (a subsample of them): their sampling spacing."""
-    if len(std) < 2:
+    if len(sdt) < 2:
         return 0.0
     rng = rng or np.random.default_rng(0)
-    sample = std if len(std) <= max_points else std[rng.choice(len(std), size=max_points, replace=False)]
+    sample = sdt if len(sdt) <= max_points else sdt[rng.choice(len(sdt), size=max_points, replace=False)]
     dist, _ = cKDTree(sample).query(sample, k=2)
     return float(np.median(dist[:, 1]))
 
 
-def project_rays(points_std: np.ndarray, sensors_std: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def project_rays(points_sdt: np.ndarray, sensors_sdt: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where the rays sensor -> point (extended or not) cross the plane d = 0.
 
     Returns (s, t, λ) with λ = d_sensor / (d_sensor - d_point): the crossing is sensor + λ (point - sensor); λ > 1
     for points in front of the plane, λ < 1 behind it. Rays parallel to the plane or from behind it give NaN.
     """
-    p = np.asarray(points_std, dtype=np.float64)
-    c = np.asarray(sensors_std, dtype=np.float64)
+    p = np.asarray(points_sdt, dtype=np.float64)
+    c = np.asarray(sensors_sdt, dtype=np.float64)
     denom = c[:, 2] - p[:, 2]
     ok = (c[:, 2] > 0) & (denom > 1e-9)
     lam = np.where(ok, c[:, 2] / np.where(ok, denom, 1.0), np.nan)
@@ -53,17 +53,17 @@ def project_rays(points_std: np.ndarray, sensors_std: np.ndarray) -> tuple[np.nd
     return s, t, lam
 
 
-def occlusion_mask(points_std: np.ndarray, sensors_std: np.ndarray, shape: tuple[int, int], s0: float, t0: float,
+def occlusion_mask(points_sdt: np.ndarray, sensors_sdt: np.ndarray, shape: tuple[int, int], s0: float, t0: float,
                    cell: float, params: "FacadeParams", spacing: float | None = None) -> np.ndarray:
-    """Cells shadowed by foreground points (see the module doc); ``points_std`` are already the foreground points.
+    """Cells shadowed by foreground points (see the module doc); ``points_sdt`` are already the foreground points.
 
     The shadow radius of a point is λ * max(``occluder_radius``, spacing / 2) (``spacing``: the foreground's
     sampling spacing); the mask is closed by ``occlusion_close_cells`` so that neighbouring shadows join.
     """
     mask = np.zeros(shape, dtype=bool)
-    if len(points_std) == 0:
+    if len(points_sdt) == 0:
         return mask
-    s, t, lam = project_rays(points_std, sensors_std)
+    s, t, lam = project_rays(points_sdt, sensors_sdt)
     ok = np.isfinite(lam) & (lam >= 1.0)
     r0 = max(params.occlusion.occluder_radius, 0.5 * (spacing or 0.0))
     radius_cells = np.clip(np.round(lam * r0 / cell), 0, params.occlusion.occluder_max_radius_cells).astype(np.int64)
@@ -82,13 +82,13 @@ def occlusion_mask(points_std: np.ndarray, sensors_std: np.ndarray, shape: tuple
     return mask
 
 
-def through_cells(points_std: np.ndarray, sensors_std: np.ndarray, shape: tuple[int, int], s0: float, t0: float,
+def through_cells(points_sdt: np.ndarray, sensors_sdt: np.ndarray, shape: tuple[int, int], s0: float, t0: float,
                   cell: float) -> np.ndarray:
     """Per-cell count of rays that crossed the plane there and hit something behind it (seen through)."""
     counts = np.zeros(shape, dtype=np.int64)
-    if len(points_std) == 0:
+    if len(points_sdt) == 0:
         return counts
-    s, t, lam = project_rays(points_std, sensors_std)
+    s, t, lam = project_rays(points_sdt, sensors_sdt)
     ok = np.isfinite(lam) & (lam > 0) & (lam < 1.0)
     row, col = cell_index(s, t, cell, s0, t0, shape)
     ok &= row >= 0
@@ -109,7 +109,7 @@ def reach_limits(points_xyz: np.ndarray, sensors_xyz: np.ndarray,
             float(np.quantile(elev, quantile)))
 
 
-def reach_mask(sensor_track_std: np.ndarray, shape: tuple[int, int], s0: float, t0: float, cell: float,
+def reach_mask(sensor_track_sdt: np.ndarray, shape: tuple[int, int], s0: float, t0: float, cell: float,
                limits: tuple[float, float, float], params: "FacadeParams") -> np.ndarray:
     """Cells that at least one trajectory position in front of the plane could have measured.
 
@@ -117,7 +117,7 @@ def reach_mask(sensor_track_std: np.ndarray, shape: tuple[int, int], s0: float, 
     angles widened by ``reach_angle_margin_deg``) and the ray meets the wall at less than ``max_incidence_deg``.
     """
     rows, cols = shape
-    track = np.asarray(sensor_track_std, dtype=np.float64)
+    track = np.asarray(sensor_track_sdt, dtype=np.float64)
     track = track[track[:, 2] > 0] if len(track) else track
     if len(track) == 0:
         return np.zeros(shape, dtype=bool)

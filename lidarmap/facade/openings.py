@@ -231,15 +231,16 @@ def refine_bounds(rect: tuple[int, int, int, int], wall_st: np.ndarray | None, s
 
 def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
                     ground_t: np.ndarray | None = None, t0: float = 0.0, s0: float = 0.0,
-                    wall_st: np.ndarray | None = None) -> list[Opening]:
+                    wall_st: np.ndarray | None = None, opaque: np.ndarray | None = None) -> list[Opening]:
     """Classify every hole region of a value grid (see :func:`hole_regions` and the module doc).
 
     * fewer hole cells than ``min_hole_area``: ignored (sampling gaps);
     * touching the left, right or top border of the grid, larger than ``max_opening_area``, more than
       ``occlusion_touch_max`` of its border occluded, fill ratio below ``Ta``, rectangle ε_w above
       ``max_window_uncertainty`` or a side below ``min_opening_size``: UNKNOWN (uncertainty inf);
-    * starting within ``door_bottom_tol`` of the ground (``ground_t``: ground height per grid column in façade t;
-      default: the grid's bottom edge ``t0``) and at least ``door_min_height`` tall: DOOR;
+    * door-sized and reaching the ground (:func:`door_or_window`; ``ground_t``: ground height per grid column in
+      façade t, default: the grid's bottom edge ``t0``; ``opaque``: cells closed by a leaf just behind the wall):
+      DOOR;
     * otherwise WINDOW with the fitted rectangle and its eq. (3) ε_w (bridged occluded cells count as 0).
 
     The grid's lower-left corner is (``s0``, ``t0``); ``wall_st`` (the main layer's points, (s, t)) places the
@@ -290,10 +291,24 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
             unknown.rect = rect if occ_border > params.openings.occlusion_touch_max else None
             out.append(unknown)
             continue
-        near_ground = bounds[2] <= float(np.mean(ground[rect[2]:rect[3]])) + params.openings.door_bottom_tol
-        kind = ElementKind.DOOR if near_ground and height >= params.openings.door_min_height else ElementKind.WINDOW
+        kind = door_or_window(bounds, float(np.mean(ground[rect[2]:rect[3]])), mask, opaque, params)
         out.append(Opening(kind, mask, rect, eps, fill, occ_border, n_cells, region, bounds))
     return out
+
+
+def door_or_window(bounds: tuple[float, float, float, float], ground: float, mask: np.ndarray,
+                   opaque: np.ndarray | None, params: FacadeParams) -> ElementKind:
+    """A door is at least ``door_min_height`` tall, at most ``door_max_width`` wide and starts within
+    ``door_bottom_tol`` of the ground line below it, or within ``door_leaf_tol`` when at least half of its cells are
+    ``opaque`` (a leaf at the top of steps); everything else, shop windows and windows with low sills included,
+    is a window."""
+    op = params.openings
+    width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
+    if height < op.door_min_height or width > op.door_max_width:
+        return ElementKind.WINDOW
+    leaf = opaque is not None and mask.any() and float(opaque[mask].mean()) >= 0.5
+    tol = op.door_leaf_tol if leaf else op.door_bottom_tol
+    return ElementKind.DOOR if bounds[2] <= ground + tol else ElementKind.WINDOW
 
 
 def complete_by_repetition(openings: list[Opening], values: np.ndarray, s0: float, t0: float, cell: float,

@@ -1,6 +1,6 @@
 """Parameters of façade extraction: one group per step of the observation (TOML ``[facade]`` with
 sub-tables ``[facade.join]``, ``[facade.planes]``, ``[facade.layers]``, ``[facade.objects]``, ``[facade.occlusion]``,
-``[facade.openings]``). Lengths in metres, angles in degrees."""
+``[facade.openings]``, ``[facade.evidence]``). Lengths in metres, angles in degrees."""
 
 from __future__ import annotations
 
@@ -261,7 +261,7 @@ class OcclusionParams:
 
 @dataclasses.dataclass(frozen=True)
 class OpeningParams:
-    """Windows and doors (§2.4) (TOML ``[facade.openings]``).
+    """Windows and doors (§2.4) (TOML ``[facade.openings]``, ``[facade.evidence]``).
 
     Ta (0.7): fill ratio (hole cells / bounding-box cells) above which a hole is a window candidate. A
         rectangle has ~1 (0.8-0.95 with jagged sampled edges), an arched window ~0.9, a circle 0.785; L-shaped or
@@ -285,13 +285,15 @@ class OpeningParams:
         sample (sub-cell, and right for sparse far façades whose scan lines are further apart than a cell);
         it moves at most this many cells from its cell edge ...
     refine_min_points (8): ... and needs this many wall points along it.
-    door_bottom_tol (1.5): openings (holes or recessed leaves) starting within this of the ground in front
-        of them may be doors: the ground floor sits up to ~1 m above the pavement on sloping streets ...
+    door_bottom_tol (0.35): openings starting within this of the ground line in front of them (the façade's
+        ground profile) may be doors (a step or threshold); windows with sills of 0.5-1.2 m stay windows ...
+    door_leaf_tol (1.1): ... and openings closed by an opaque leaf (evidence.opaque_share) within this of it:
+        a door at the top of a few steps, the ground floor raised above a sloping street ...
     door_min_height (1.9): ... and doors are at least this tall (windows, even on the ground floor, are
-        shorter; their sills are ~1 m above the floor).
+        shorter; their sills are ~1 m above the floor) ...
     ground_band (4.0): ground points up to this far in front of the wall give the ground line ...
     ground_bin (1.0): ... one low (20th percentile) height per this length along the wall.
-    door_max_width (3.5): recessed door leaves are at most this wide.
+    door_max_width (3.5): ... and at most this wide (shop windows and glazed fronts are wider: windows).
     recessed_windows (False): a rectangular region of a recessed layer (fill >= Ta, opening-sized) that is not a
         door is a WINDOW (glass with blinds or curtains returns the laser a few cm to dm behind the wall);
         False keeps it a STRUCTURE.
@@ -324,6 +326,7 @@ class OpeningParams:
         "refine_max_cells": ">= 0",
         "refine_min_points": ">= 0",
         "door_bottom_tol": ">= 0",
+        "door_leaf_tol": ">= 0",
         "ground_band": ">= 0",
         "ground_bin": ">= 0",
         "door_min_height": ">= 0",
@@ -349,7 +352,8 @@ class OpeningParams:
     edge_bias_cells: float = 0.5
     refine_max_cells: float = 2.5
     refine_min_points: int = 8
-    door_bottom_tol: float = 1.5
+    door_bottom_tol: float = 0.35
+    door_leaf_tol: float = 1.1
     ground_band: float = 4.0
     ground_bin: float = 1.0
     door_min_height: float = 1.9
@@ -361,6 +365,62 @@ class OpeningParams:
     complete_by_repetition: bool = True
     repetition_tol: float = 0.2
     min_unknown_area: float = 0.1
+
+    def __post_init__(self) -> None:
+        check_params(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class EvidenceParams:
+    """Ray evidence for openings (TOML ``[facade.evidence]``), see :mod:`lidarmap.facade.evidence`.
+
+    ray_evidence (True): a cell is an opening only where pulses crossed the wall plane (returns behind it, or
+        pulses without return between returns of one scan line); unsampled cells are "not observed". False: the
+        paper's rule (every reachable, unoccluded cell without a return is a hole).
+    pass_depth (0.02): returns more than this behind the local wall passed the wall plane (glass, curtains 3-20 cm
+        behind it count; range noise of 1 cm does not).
+    wall_band (0.1), wall_block (1.0): the local wall depth is the median depth of the points within wall_band of
+        the plane per wall_block metres along it (a wall bowing or drifting by cm is not glass).
+    max_missed_pulses (150): longer runs of pulses without return in one scan line are not reconstructed (the
+        line left the façade: sky, far away).
+    missed_max_incidence_deg (75.0): pulses this grazing to the wall may return nothing from a wall: no evidence.
+    min_pass_pulses (1): a cell is an opening cell with at least this many pulses through the plane ...
+    max_wall_share (0.3): ... and at most this share of its pulses returned from the wall.
+    evidence_grow_cells (2): cells without any pulse within this many cells of an opening cell join it (scan
+        lines of a far façade lie further apart than a cell; the opening's edge lies somewhere in the gap).
+    opaque_share (0.7): a cell whose passing pulses came back at least this often from just behind the wall
+        (within layer_back) is opaque: a door leaf or curtain, not glass or a room.
+    weight_pulses (2.0): a campaign's vote on a cell weighs 1 + floor(pulses x cos(incidence) / weight_pulses),
+        at most 4 ...
+    weight_occlusion_cells (2): ... halved (at least 1) within this many cells of an occluded cell.
+    """
+
+    constraints: ClassVar[dict[str, str]] = {
+        "pass_depth": ">= 0",
+        "wall_band": "> 0",
+        "wall_block": "> 0",
+        "max_missed_pulses": ">= 0",
+        "missed_max_incidence_deg": "[0, 90]",
+        "min_pass_pulses": ">= 1",
+        "max_wall_share": "[0, 1]",
+        "evidence_grow_cells": ">= 0",
+        "opaque_share": "[0, 1]",
+        "weight_pulses": "> 0",
+        "weight_occlusion_cells": ">= 0",
+    }
+
+    ray_evidence: bool = True
+    pass_depth: float = 0.02
+    wall_band: float = 0.1
+    wall_block: float = 1.0
+    max_missed_pulses: int = 150
+    missed_max_incidence_deg: float = 75.0
+    min_pass_pulses: int = 1
+    max_wall_share: float = 0.3
+    evidence_grow_cells: int = 2
+    opaque_share: float = 0.7
+    weight_pulses: float = 2.0
+    weight_occlusion_cells: int = 2
 
     def __post_init__(self) -> None:
         check_params(self)
@@ -383,6 +443,7 @@ class FacadeParams:
     objects: ObjectParams = dataclasses.field(default_factory=ObjectParams)
     occlusion: OcclusionParams = dataclasses.field(default_factory=OcclusionParams)
     openings: OpeningParams = dataclasses.field(default_factory=OpeningParams)
+    evidence: EvidenceParams = dataclasses.field(default_factory=EvidenceParams)
 
     def updated(self, **values: object) -> "FacadeParams":
         """A copy with some parameters changed, named flat (``cell=0.2``) or by group (``layers=LayerParams()``)."""

@@ -34,12 +34,44 @@ def las_info(path: str | Path, crs: str | CRS | None = None, chunk_size: int = C
             "extra_dimensions": list(header.point_format.extra_dimension_names),
             "dimensions": list(header.point_format.dimension_names),
         }
+    return _add_statistics(info, iter_las(path, chunk_size=chunk_size, crs=crs))
+
+
+def points_info(path: str | Path, crs: str | CRS | None = None, columns: str | None = None,
+                chunk_size: int = CHUNK_POINTS) -> dict[str, Any]:
+    """Summary of a PLY or text point file (the same keys as :func:`las_info` where they apply; ``format``
+    says what the file is)."""
+    from lidarmap.io.points import iter_points, read_points_header
+
+    path = Path(path)
+    header = read_points_header(path, crs, columns)
+    if header.fmt == "ply":
+        from lidarmap.io.ply import read_ply_header
+
+        ply = read_ply_header(path)
+        fmt = f"PLY {ply.fmt.replace('_', ' ')}"
+        crs_source = "file" if ply.crs_text() else ("--crs" if crs else None)
+    else:
+        fmt, crs_source = "text (" + ",".join(header.fields) + ")", "--crs" if crs else None
+    info: dict[str, Any] = {"file": str(path), "format": fmt, "point_count": header.n_points,
+                            "crs": describe_crs(header.crs), "crs_source": crs_source,
+                            "extra_dimensions": [f for f in header.fields if f not in ("x", "y", "z")],
+                            "dimensions": list(header.fields)}
+    return _add_statistics(info, iter_points(path, chunk_size, crs, columns))
+
+
+def _add_statistics(info: dict[str, Any], chunks) -> dict[str, Any]:
+    """Bounds, density, classes, returns and GPS time span over every chunk (``point_count`` set when unknown)."""
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     classes: dict[int, int] = {}
     returns: dict[int, int] = {}
     t_range = [np.inf, -np.inf]
     cells: set[int] = set()
-    for chunk in iter_las(path, chunk_size=chunk_size, crs=crs):
+    n = 0
+    for chunk in chunks:
+        if not len(chunk):
+            continue
+        n += len(chunk)
         lo, hi = np.minimum(lo, chunk.xyz.min(axis=0)), np.maximum(hi, chunk.xyz.max(axis=0))
         _count_into(classes, chunk.attrs.get("classification"))
         _count_into(returns, chunk.attrs.get("return_number"))
@@ -47,7 +79,7 @@ def las_info(path: str | Path, crs: str | CRS | None = None, chunk_size: int = C
             t_range = [min(t_range[0], float(chunk.attrs["gps_time"].min())),
                        max(t_range[1], float(chunk.attrs["gps_time"].max()))]
         cells.update(_cell_keys(chunk.xyz).tolist())
-    count = info["point_count"]
+    info["point_count"] = count = n if info["point_count"] is None else info["point_count"]
     if count:
         area_bbox = float((hi[0] - lo[0]) * (hi[1] - lo[1]))
         area_cells = len(cells) * DENSITY_CELL**2

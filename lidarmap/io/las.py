@@ -13,13 +13,25 @@ import laspy
 import numpy as np
 from pyproj import CRS
 
+from lidarmap._version import __version__
 from lidarmap.core import STANDARD_ATTRS, PointCloud
 from lidarmap.errors import CRSError, InputError
 from lidarmap.io.atomic import atomic_path
 from lidarmap.io.crs import parse_crs, same_crs
 
+#: Largest coordinate a header's scale and offset may reach (m or degrees): beyond any CRS on Earth.
+MAX_COORDINATE = 1e12
 #: Default number of points per chunk when streaming.
 CHUNK_POINTS = 2_000_000
+#: The header's "generating software" (32 bytes at most).
+GENERATING_SOFTWARE = f"lidarmap {__version__}"[:32]
+#: Extra dimensions lidarmap writes: LAS description (32 bytes at most) and no-data value (None: every value is data).
+#: Names are spelled out (not imported from the stages) because io imports no stage.
+EXTRA_DIMS: dict[str, tuple[str, float | int | None]] = {
+    "plane_id": ("flatten plane id, -1: none", -1),
+    "building_probability": ("P(building) from segmentation", None),
+    "footprint_distance": ("m to the footprint, 0 inside", None),
+}
 
 
 def _open(path: Path) -> laspy.LasReader:
@@ -45,6 +57,11 @@ def _open(path: Path) -> laspy.LasReader:
     if np.any(np.asarray(header.scales) == 0):
         reader.close()
         raise InputError("header has a zero scale factor", path)
+    reach = max(abs(float(o)) + abs(float(s)) * 2.0**31 for o, s in zip(header.offsets, header.scales))
+    if not reach < MAX_COORDINATE:  # Python floats: an absurd scale gives inf here, not numpy overflow warnings
+        reader.close()
+        raise InputError(f"header scale {list(map(float, header.scales))} / offset {list(map(float, header.offsets))} "
+                         f"give coordinates beyond ±{MAX_COORDINATE:g} (damaged header?)", path)
     return reader
 
 
@@ -200,8 +217,25 @@ def _point_format_for(cloud: PointCloud) -> int:
     return 7 if cloud.has_rgb else 6
 
 
+def _extra_bytes(name: str, dtype: np.dtype) -> laspy.ExtraBytesParams:
+    """An extra dimension with its description and no-data value when lidarmap knows them (kept short: LAS allows
+    32 bytes)."""
+    description, no_data = EXTRA_DIMS.get(name, ("", None))
+    return laspy.ExtraBytesParams(name=name, type=dtype, description=description,
+                                  no_data=None if no_data is None else [no_data])
+
+
+def _add_crs_wkt1(header: laspy.LasHeader, crs: CRS) -> None:
+    """The CRS as an OGC WKT VLR in WKT1 (the LAS 1.4 spec cites OGC 01-009, WKT1; WKT2 when WKT1 cannot express
+    it), which older GIS readers parse too."""
+    wkt = crs.to_wkt("WKT1_GDAL") or crs.to_wkt()
+    header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(wkt))
+    header.global_encoding.wkt = True
+
+
 def write_las(path: str | Path, cloud: PointCloud, scale: float = 0.001) -> Path:
-    """Write LAS 1.4 (LAZ when the suffix is .laz) with the CRS record and extra dimensions, atomically.
+    """Write LAS 1.4 (LAZ when the suffix is .laz) with the CRS record (WKT1) and described extra dimensions,
+    atomically.
 
     Point format 6 (7 with RGB, 8 with NIR). Coordinates are stored at ``scale`` (default 1 mm).
     """
@@ -209,13 +243,14 @@ def write_las(path: str | Path, cloud: PointCloud, scale: float = 0.001) -> Path
     if not np.all(np.isfinite(cloud.xyz)):
         raise InputError("refusing to write NaN or infinite coordinates", path)
     header = laspy.LasHeader(point_format=_point_format_for(cloud), version="1.4")
+    header.generating_software = GENERATING_SOFTWARE
     for name in cloud.extra_dims:
-        header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=cloud.attrs[name].dtype))
+        header.add_extra_dim(_extra_bytes(name, cloud.attrs[name].dtype))
     lo = cloud.xyz.min(axis=0) if len(cloud) else np.zeros(3)
     header.offsets = np.floor(lo)
     header.scales = np.array([scale, scale, scale])
     if cloud.crs is not None:
-        header.add_crs(cloud.crs)
+        _add_crs_wkt1(header, cloud.crs)
     record = laspy.ScaleAwarePointRecord.zeros(len(cloud), header=header)
     record.x, record.y, record.z = cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]
     for name, values in cloud.attrs.items():
@@ -223,8 +258,7 @@ def write_las(path: str | Path, cloud: PointCloud, scale: float = 0.001) -> Path
             record["scan_angle"] = np.round(np.asarray(values, dtype=np.float64) / 0.006).astype(np.int16)
         elif name in record.point_format.dimension_names:
             record[name] = values
-    with atomic_path(path) as tmp:
-        with laspy.open(tmp, mode="w", header=header,
-                        do_compress=path.suffix.lower() == ".laz") as writer:
-            writer.write_points(record)
+    compress = path.suffix.lower() == ".laz"
+    with atomic_path(path) as tmp, laspy.open(tmp, mode="w", header=header, do_compress=compress) as writer:
+        writer.write_points(record)
     return path

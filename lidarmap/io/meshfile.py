@@ -1,4 +1,8 @@
-"""Meshes on disk in CRS coordinates with double precision: binary PLY (``double`` x/y/z) and OBJ."""
+"""Meshes on disk in CRS coordinates with double precision: binary PLY (``double`` x/y/z) and OBJ.
+
+With a CRS, the PLY header says it (``comment crs EPSG:28992``, or the WKT1 when there is no EPSG code) and a ``.prj``
+sidecar (same stem, ESRI WKT1 as Shapefiles carry it) tells GIS tools that read neither PLY comments nor OBJ.
+"""
 
 from __future__ import annotations
 
@@ -6,11 +10,37 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from pyproj import CRS
 
 from lidarmap.errors import InputError
-from lidarmap.io.atomic import atomic_path
+from lidarmap.io.atomic import atomic_path, write_text_atomic
 
 MESH_SUFFIXES = (".ply", ".obj")
+DEFAULT_COMMENT = "lidarmap mesh, CRS coordinates"
+
+
+def crs_comment(crs: CRS) -> str:
+    """The PLY header line (without ``comment``) naming a CRS: ``crs EPSG:<code>``, else ``crs <WKT1>``."""
+    epsg = crs.to_epsg()
+    return f"crs EPSG:{epsg}" if epsg is not None else f"crs {crs.to_wkt('WKT1_GDAL') or crs.to_wkt()}"
+
+
+def read_ply_crs(path: str | Path) -> CRS | None:
+    """The CRS a PLY header names in its ``comment crs`` line (``None`` when it names none)."""
+    with Path(path).open("rb") as fh:
+        for raw in fh:
+            line = raw.decode("ascii", "replace").strip()
+            if line == "end_header":
+                return None
+            if line.startswith("comment crs "):
+                return CRS.from_user_input(line.removeprefix("comment crs "))
+    return None
+
+
+def write_prj(mesh_path: str | Path, crs: CRS) -> Path:
+    """The ``.prj`` sidecar of a mesh file (ESRI WKT1; GDAL WKT1 when ESRI's flavour cannot express the CRS)."""
+    wkt = crs.to_wkt("WKT1_ESRI") or crs.to_wkt("WKT1_GDAL") or crs.to_wkt()
+    return write_text_atomic(Path(mesh_path).with_suffix(".prj"), wkt)
 
 
 def write_ply_arrays(path: str | Path, vertices: np.ndarray, faces: np.ndarray, vertex_colors: np.ndarray | None = None,
@@ -23,7 +53,7 @@ def write_ply_arrays(path: str | Path, vertices: np.ndarray, faces: np.ndarray, 
     faces = np.asarray(faces, dtype=np.int64)
     k = faces.shape[1]
     header = ["ply", "format binary_little_endian 1.0"]
-    header += [f"comment {line}" for line in (comment or "lidarmap mesh, CRS coordinates").splitlines()]
+    header += [f"comment {line}" for line in (comment or DEFAULT_COMMENT).splitlines()]
     header += [f"element vertex {len(vertices)}", "property double x", "property double y", "property double z"]
     vertex_fields = [("xyz", "<f8", (3,))]
     if vertex_colors is not None:
@@ -65,15 +95,22 @@ def _write_obj(path: str | Path, vertices: np.ndarray, faces: np.ndarray, vertex
     return Path(path)
 
 
-def write_mesh(path: str | Path, mesh: trimesh.Trimesh) -> Path:
+def write_mesh(path: str | Path, mesh: trimesh.Trimesh, crs: CRS | None = None) -> Path:
     """Write a mesh as ``.ply`` (binary, float64 vertices, vertex or face colours) or ``.obj`` (text, vertex
-    colours only), atomically, by the file's suffix."""
+    colours only), atomically, by the file's suffix; with ``crs``, the PLY header names it and a ``.prj`` sidecar
+    is written beside either."""
     suffix = Path(path).suffix.lower()
     if suffix not in MESH_SUFFIXES:
         raise InputError(f"unknown mesh format {suffix or '(no suffix)'!r} (use {' or '.join(MESH_SUFFIXES)})", path)
     kind = mesh.visual.kind if hasattr(mesh.visual, "kind") else None
     vertex_colors = np.asarray(mesh.visual.vertex_colors) if kind == "vertex" else None
     if suffix == ".obj":
-        return _write_obj(path, np.asarray(mesh.vertices, dtype=np.float64), mesh.faces, vertex_colors)
-    face_colors = np.asarray(mesh.visual.face_colors) if kind == "face" else None
-    return write_ply_arrays(path, mesh.vertices, mesh.faces, vertex_colors=vertex_colors, face_colors=face_colors)
+        _write_obj(path, np.asarray(mesh.vertices, dtype=np.float64), mesh.faces, vertex_colors)
+    else:
+        face_colors = np.asarray(mesh.visual.face_colors) if kind == "face" else None
+        comment = DEFAULT_COMMENT if crs is None else f"{DEFAULT_COMMENT}\n{crs_comment(crs)}"
+        write_ply_arrays(path, mesh.vertices, mesh.faces, vertex_colors=vertex_colors, face_colors=face_colors,
+                         comment=comment)
+    if crs is not None:
+        write_prj(path, crs)
+    return Path(path)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -12,12 +13,23 @@ from lidarmap.core import Trajectory
 from lidarmap.errors import InputError
 from lidarmap.io.atomic import write_text_atomic
 
+log = logging.getLogger(__name__)
+
 REQUIRED = ("time", "x", "y", "z")
+#: Default longest hole (s) between trajectory rows interpolated without a warning (``[update] trajectory_warn_gap``).
+WARN_GAP_S = 1.0
+#: Default longest hole (s) between trajectory rows accepted at all (``[update] trajectory_max_gap``): positions
+#: interpolated over half a minute of driving are guesses, and the façades seen then would be misplaced.
+MAX_GAP_S = 30.0
 ANGLES = ("roll", "pitch", "yaw")
 
 
-def read_trajectory(path: str | Path) -> Trajectory:
-    """Read a trajectory CSV (header row required; extra columns are ignored); validated."""
+def read_trajectory(path: str | Path, warn_gap: float = WARN_GAP_S, max_gap: float = MAX_GAP_S) -> Trajectory:
+    """Read a trajectory CSV (header row required; extra columns are ignored); validated.
+
+    A hole between two rows longer than ``warn_gap`` seconds is interpolated with a warning (one log line naming the
+    file); one longer than ``max_gap`` is refused.
+    """
     path = Path(path)
     if not path.exists():
         raise InputError("file not found", path)
@@ -42,9 +54,21 @@ def read_trajectory(path: str | Path) -> Trajectory:
     time = data[:, cols.index("time")]
     if np.any(np.diff(time) <= 0):
         raise InputError("trajectory times are not strictly increasing", path)
+    _check_gaps(time, warn_gap, max_gap, path)
     xyz = data[:, [cols.index(c) for c in ("x", "y", "z")]]
     rpy = data[:, [cols.index(c) for c in ANGLES]] if all(c in cols for c in ANGLES) else None
     return Trajectory(time=time, xyz=xyz, rpy=rpy, source=str(path))
+
+
+def _check_gaps(time: np.ndarray, warn_gap: float, max_gap: float, path: Path) -> None:
+    steps = np.diff(time)
+    worst = int(np.argmax(steps))
+    where = f"{steps[worst]:.1f} s hole in the trajectory after time {time[worst]:.3f}"
+    if steps[worst] > max_gap:
+        raise InputError(f"{where} (longest accepted: {max_gap:g} s, [update] trajectory_max_gap)", path)
+    if steps[worst] > warn_gap:
+        log.warning("%s: %s (%d hole(s) over %g s): positions there are interpolated", path, where,
+                    int(np.sum(steps > warn_gap)), warn_gap)
 
 
 def write_trajectory(path: str | Path, traj: Trajectory) -> Path:

@@ -11,7 +11,10 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+import glob
 import logging
+import shutil
+import sqlite3
 import tempfile
 import time
 from collections.abc import Callable
@@ -26,12 +29,18 @@ from lidarmap.errors import ConfigError, CRSError, InputError
 from lidarmap.export.summary import count_map
 from lidarmap.io.crs import horizontal_crs, same_crs
 from lidarmap.io.footprints import check_overlap, read_footprints
-from lidarmap.io.las import read_las
-from lidarmap.io.trajectory import read_trajectory
+from lidarmap.io.points import read_points
 from lidarmap.map import refine
 from lidarmap.map.model import BuildingMap, Campaign
-from lidarmap.map.store import MapStore, campaign_fingerprint, writer_lock
-from lidarmap.map.update import UpdateParams, fuse_campaign, las_source
+from lidarmap.map.store import MapStore, campaign_fingerprint, damaged_map_error, writer_lock
+from lidarmap.map.mls import (
+    DERIVED,
+    discover_campaign,
+    join_given_footprints,
+    merge_discovered,
+    mobile_campaign,
+)
+from lidarmap.map.update import UpdateParams, fuse_campaign
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +55,7 @@ class CampaignInputs:
     footprints: Path | None
     id_field: str
     crs: str | None
+    columns: str | None = None  # a text point file's column spec (lidarmap.io.xyz)
 
     @property
     def source(self) -> str:
@@ -54,21 +64,18 @@ class CampaignInputs:
 
 
 def campaign_inputs(points: Path | None, trajectory: Path | None, aerial: Path | None, footprints: Path | None,
-                    id_field: str | None, crs: str | None) -> CampaignInputs:
-    """Check the option combination of ``map update`` (one line per mistake)."""
+                    id_field: str | None, crs: str | None, columns: str | None = None) -> CampaignInputs:
+    """Check the option combination of ``map update`` (one line per mistake). Without ``trajectory`` a mobile
+    campaign's sensor positions come from the points (origins, or a path estimated from the cloud: docs/mls.md)."""
     if points is None and aerial is None:
         raise ConfigError("map update needs --points (a mobile campaign) or --aerial (an aerial scan)")
     if points is not None and aerial is not None:
         raise ConfigError("--points and --aerial cannot be combined: one campaign per update")
-    if points is not None and trajectory is None:
-        raise ConfigError("--points needs --trajectory (the vehicle trajectory CSV of the campaign)")
-    if points is not None and footprints is None:
-        raise ConfigError("--points needs --footprints (building footprints, GeoJSON)")
     if aerial is not None and trajectory is not None:
         raise ConfigError("--trajectory belongs to a mobile campaign (--points), not to --aerial")
     kind = "mobile" if points is not None else "aerial"
     return CampaignInputs(kind=kind, points=Path(points if points is not None else aerial), trajectory=trajectory,
-                          footprints=footprints, id_field=id_field or "id", crs=crs)
+                          footprints=footprints, id_field=id_field or "id", crs=crs, columns=columns)
 
 
 def _refuse_applied(store: MapStore, fingerprint: str, inputs: CampaignInputs) -> None:
@@ -102,14 +109,38 @@ def map_footprints(building_map: BuildingMap, source: Path) -> Footprints:
                       crs=horizontal_crs(CRS.from_user_input(building_map.crs_wkt)), source=str(source))
 
 
-def _campaign_footprints(inputs: CampaignInputs, crs: CRS, bounds: tuple[float, float, float, float],
-                         stored: BuildingMap, map_path: Path) -> Footprints:
+def _campaign_footprints(inputs: CampaignInputs, points: _Points, stored: BuildingMap, map_path: Path,
+                         fparams: Any, seed: int, discover: Any = None) -> tuple[Footprints, dict[str, tuple]]:
+    """The footprints the campaign runs with, and the footprint changes the map takes after it ({building id:
+    (polygon, attributes or None to keep them)}): the footprint file (joined to buildings the map found from the
+    points), else the map's buildings (aerial), else for a mobile campaign the map's buildings and those found in
+    its points (:mod:`lidarmap.map.mls`, docs/mls.md)."""
+    known = map_footprints(stored, map_path) if stored.buildings else None
     if inputs.footprints is not None:
-        footprints = read_footprints(inputs.footprints, id_field=inputs.id_field, crs=crs)
-    else:
+        footprints = read_footprints(inputs.footprints, id_field=inputs.id_field, crs=points.crs)
+        check_overlap(footprints, points.bounds, inputs.points.name)
+        return join_given_footprints(footprints, known) if inputs.kind == "mobile" else (footprints, {})
+    if inputs.kind == "aerial":
         footprints = map_footprints(stored, map_path)
-    check_overlap(footprints, bounds, inputs.points.name)
-    return footprints
+        check_overlap(footprints, points.bounds, inputs.points.name)
+        return footprints, {}
+    found = discover_campaign(points.mobile, fparams, discover, seed)
+    log.info("%s: %d building(s) found from the points", inputs.points, len(found))
+    if not found and known is None:
+        raise InputError("no building found in the points (no vertical walls seen): give --footprints", inputs.points)
+    footprints, grown = merge_discovered(known, found, horizontal_crs(points.crs), str(inputs.points))
+    return footprints, {bid: (polygon, None) for bid, polygon in grown.items()}
+
+
+def _store_footprints(new_map: BuildingMap, changes: dict[str, tuple]) -> None:
+    """Footprints grown by a campaign or given for buildings found from the points, into the new map."""
+    for bid, (polygon, attributes) in changes.items():
+        building = new_map.buildings.get(bid)
+        if building is None:
+            continue
+        building.footprint = polygon
+        if attributes is not None:
+            building.attributes = {k: v for k, v in attributes.items() if k != DERIVED}
 
 
 @dataclasses.dataclass
@@ -122,14 +153,17 @@ class _Points:
     bounds: tuple[float, float, float, float]
     cloud: PointCloud | None = None
     stream: Any = None  # lidarmap.map.update.CampaignSource
+    mobile: Any = None  # lidarmap.map.mls.MobileCampaign: the stream with its trajectory and sensor mode
 
 
-def _read_points(inputs: CampaignInputs, update: Any) -> _Points:
+def _read_points(inputs: CampaignInputs, update: Any, sensors: Any = None) -> _Points:
     """Aerial scans are read whole; of a mobile campaign only the header here (the update streams it)."""
     if inputs.kind == "mobile":
-        stream = las_source(inputs.points, inputs.crs, update.chunk_points)
-        return _Points(stream.crs, stream.n_points, (*stream.lo, *stream.hi), stream=stream)
-    cloud = read_las(inputs.points, crs=inputs.crs)
+        mobile = mobile_campaign(inputs.points, inputs.trajectory, inputs.crs, inputs.columns, update.chunk_points,
+                                 sensors, (update.trajectory_warn_gap, update.trajectory_max_gap))
+        stream = mobile.source
+        return _Points(stream.crs, stream.n_points, (*stream.lo, *stream.hi), stream=stream, mobile=mobile)
+    cloud = read_points(inputs.points, crs=inputs.crs, columns=inputs.columns)
     if len(cloud) == 0:
         raise InputError("the point cloud is empty", inputs.points)
     lo, hi = cloud.xyz.min(axis=0), cloud.xyz.max(axis=0)
@@ -153,11 +187,23 @@ def _new_map(stored: BuildingMap, points: _Points, footprints: Footprints, input
     facade_params, refine_params = params
     if inputs.kind == "aerial":
         return _Fused(refine.add_aerial(stored, points.cloud, footprints, refine_params, campaign_id, seed), {})
-    trajectory = read_trajectory(inputs.trajectory)
-    with tempfile.TemporaryDirectory(dir=map_path.resolve().parent, prefix=f".{map_path.name}.spool-") as spool:
-        fused = fuse_campaign(stored, points.stream, trajectory, footprints, facade_params, refine_params,
-                              campaign_id, seed, update=update, spool_dir=Path(spool) / "points", progress=progress)
+    with tempfile.TemporaryDirectory(dir=map_path.resolve().parent, prefix=_spool_prefix(map_path)) as spool:
+        fused = fuse_campaign(stored, points.stream, points.mobile.trajectory, footprints, facade_params,
+                              refine_params, campaign_id, seed, update=update, spool_dir=Path(spool) / "points",
+                              progress=progress, noise_factor=points.mobile.noise_factor)
     return _Fused(fused.map, fused.failed)
+
+
+def _spool_prefix(map_path: Path) -> str:
+    """The spool folder beside the map during a mobile update: ``.<map name>.spool-XXXX``."""
+    return f".{map_path.name}.spool-"
+
+
+def _remove_stale_spools(map_path: Path) -> None:
+    """Spools of earlier updates that were killed (``kill -9`` skips the cleanup): the caller holds the map's writer
+    lock, so no other update of this map is running and every spool of it is stale."""
+    for stale in map_path.resolve().parent.glob(f"{glob.escape(_spool_prefix(map_path))}*"):
+        shutil.rmtree(stale, ignore_errors=True)
 
 
 @dataclasses.dataclass
@@ -171,29 +217,38 @@ class UpdateResult:
     failed: dict[str, str] = dataclasses.field(default_factory=dict)
 
 
-def _campaign_record(inputs: CampaignInputs, campaign_id: int, fingerprint: str, n_points: int,
+def _campaign_record(inputs: CampaignInputs, campaign_id: int, fingerprint: str, points: _Points,
                      counts: dict[str, int], seconds: float, seed: int, failed: dict[str, str]) -> Campaign:
-    """The campaign row: what was applied, its fingerprint, the map's counts after it (``map history``) and the
-    buildings it could not update (``failed``: {id: reason})."""
+    """The campaign row: what was applied, its fingerprint, the map's counts after it (``map history``), the
+    buildings it could not update (``failed``: {id: reason}) and, for a mobile campaign, where its sensor positions
+    came from (``sensors``; an estimated path also ``noise_factor``)."""
     files = {name: str(path.resolve()) for name, path in (("points", inputs.points), ("trajectory", inputs.trajectory),
                                                            ("footprints", inputs.footprints)) if path is not None}
-    return Campaign(campaign_id=campaign_id, kind=inputs.kind, source=inputs.source, fingerprint=fingerprint,
-                    n_points=n_points, created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+    sensors = {} if points.mobile is None else {"sensors": points.mobile.mode,
+                                                "noise_factor": points.mobile.noise_factor}
+    source = inputs.source + (f" [{points.mobile.mode}]" if points.mobile is not None and
+                              points.mobile.mode != "trajectory" else "")
+    return Campaign(campaign_id=campaign_id, kind=inputs.kind, source=source, fingerprint=fingerprint,
+                    n_points=points.n_points, created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
                     summary={**counts, "seconds": round(seconds, 3), "seed": seed, "files": files,
-                             "failed": dict(failed)})
+                             "failed": dict(failed), **sensors})
 
 
 def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, Any], seed: int,
                    step: Callable[[str], None] = lambda name: None, update: Any = None,
-                   progress: Callable[[int, int], None] = lambda done, total: None) -> UpdateResult:
+                   progress: Callable[[int, int], None] = lambda done, total: None, sensors: Any = None,
+                   discover: Any = None) -> UpdateResult:
     """Fuse one campaign into the map (created when missing) in one transaction, under the writer lock.
 
     ``update``: :class:`lidarmap.map.update.UpdateParams` (workers, scheduler, chunking of a mobile campaign;
-    default: this process). ``progress(done, total)`` after every building of a mobile campaign.
+    default: this process). ``progress(done, total)`` after every building of a mobile campaign. ``sensors``
+    (:class:`lidarmap.facade.sensors.SensorParams`) and ``discover`` (:class:`lidarmap.facade.discover.DiscoverParams`):
+    a mobile campaign without trajectory file or footprints (default parameters when ``None``).
     """
     update = update or UpdateParams()
     started = time.perf_counter()
     with writer_lock(map_path):
+        _remove_stale_spools(map_path)
         store = MapStore.open(map_path) if map_path.exists() else None
         try:
             step("fingerprint")
@@ -201,18 +256,20 @@ def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, An
             if store is not None:
                 _refuse_applied(store, fingerprint, inputs)
             step("reading points")
-            points = _read_points(inputs, update)
+            points = _read_points(inputs, update, sensors)
             crs = _map_crs(points.crs, store, inputs.points)
             stored = store.load() if store is not None else BuildingMap(crs_wkt=crs.to_wkt())
             step("reading footprints")
-            footprints = _campaign_footprints(inputs, points.crs, points.bounds, stored, map_path)
+            footprints, footprint_changes = _campaign_footprints(inputs, points, stored, map_path, params[0], seed,
+                                                                 discover)
             campaign_id = store.next_campaign_id() if store is not None else 1
             step("refining the map")
             fused = _new_map(stored, points, footprints, inputs, params, update, campaign_id, seed, map_path,
                              progress)
             new_map = fused.map
+            _store_footprints(new_map, footprint_changes)
             counts = count_map(new_map)
-            campaign = _campaign_record(inputs, campaign_id, fingerprint, points.n_points, counts,
+            campaign = _campaign_record(inputs, campaign_id, fingerprint, points, counts,
                                         time.perf_counter() - started, seed, fused.failed)
             new_map.campaigns = [*stored.campaigns, campaign]
             step("committing")
@@ -220,6 +277,11 @@ def apply_campaign(map_path: Path, inputs: CampaignInputs, params: tuple[Any, An
                 store = MapStore.create(map_path, crs.to_wkt())
             changes = store.commit(new_map, campaign)
             log.info("%s: campaign %d (%s) committed: %s", map_path, campaign_id, inputs.source, counts)
+        except sqlite3.DatabaseError as exc:
+            damaged = damaged_map_error(exc, map_path)
+            if damaged is None:
+                raise
+            raise damaged from None
         finally:
             if store is not None:
                 store.close()

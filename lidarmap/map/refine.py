@@ -61,6 +61,7 @@ from shapely.geometry import Polygon, box
 from lidarmap.config import check_params
 from lidarmap.core import Footprints, PointCloud
 from lidarmap.errors import LidarmapError
+from lidarmap.executor import derive_seed
 from lidarmap.facade.campaign import CampaignData, check_same_crs
 from lidarmap.facade.layers import assign_layers, grid_shape, mask_to_polygons
 from lidarmap.facade.model import (
@@ -868,23 +869,24 @@ def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, po
     cell = fparams.layers.cell
     frame0 = stored.frame
     xyz = camp.xyz[member_ids]
-    std = frame0.to_facade(xyz)
-    keep = (std[:, 2] >= -fparams.layers.layer_back) & (std[:, 2] <= fparams.layers.layer_front)
+    sdt = frame0.to_facade(xyz)
+    keep = (sdt[:, 2] >= -fparams.layers.layer_back) & (sdt[:, 2] <= fparams.layers.layer_front)
     if keep.sum() < fparams.planes.min_facade_points:
         return None
-    new_layers = layer_fit(std[keep], cell, fparams, rng, seed)  # the campaign's own Gaussians, stored depth axis
+    new_layers = layer_fit(sdt[keep], cell, fparams, rng, seed)  # the campaign's own Gaussians, stored depth axis
     if not _wall_component(new_layers, stored, fparams, params):
         # one random start can merge the wall into a broad clutter component (a few thousand points of a side
         # wall): the same sample again, with more starts
         retry = fparams.updated(gmm_n_init=max(fparams.layers.gmm_n_init, params.wall_retry_inits))
-        new_layers = layer_fit(std[keep], cell, retry, np.random.default_rng(seed), seed)
+        new_layers = layer_fit(sdt[keep], cell, retry, np.random.default_rng(seed), seed)
+    new_layers = [dataclasses.replace(la, sigma=la.sigma * camp.noise_factor) for la in new_layers]
     matches, _ = match_layers(stored.layers, stored.main_layer, new_layers, params)
     if not matches:
         return None
     j_main = next(i for i, lid in matches.items() if lid == stored.main_layer)
     main_old = stored.layer(stored.main_layer)
     # the plane: PCA normal of the new main layer's 3σ inliers, fused with the stored one by point counts
-    normal1, n_inl = _main_inlier_normal(xyz[keep], std[keep, 2], new_layers[j_main], fparams.layers.sigma_k, frame0.normal)
+    normal1, n_inl = _main_inlier_normal(xyz[keep], sdt[keep, 2], new_layers[j_main], fparams.layers.sigma_k, frame0.normal)
     normal2 = frame0.normal[:2] if normal1 is None else _fuse_normal(
         frame0.normal, main_old.n_points, normal1, n_inl, params.normal_max_angle_deg)
     mu_main, _ = fuse_gaussians(main_old.mu, main_old.sigma, new_layers[j_main].mu, new_layers[j_main].sigma)
@@ -951,10 +953,10 @@ def assign_to_facades(facades: list[Facade], xyz: np.ndarray, polygon, params: R
     best = np.full(len(xyz), -1, dtype=np.int64)
     best_d = np.full(len(xyz), np.inf)
     for k, f in enumerate(facades):
-        std = f.frame.to_facade(xyz)
+        sdt = f.frame.to_facade(xyz)
         lo, hi = _s_range(f, polygon, params)
-        dist = np.abs(std[:, 2])
-        ok = (dist <= params.association_distance) & (std[:, 0] >= lo) & (std[:, 0] <= hi) & (dist < best_d)
+        dist = np.abs(sdt[:, 2])
+        ok = (dist <= params.association_distance) & (sdt[:, 0] >= lo) & (sdt[:, 0] <= hi) & (dist < best_d)
         best[ok] = k
         best_d[ok] = dist[ok]
     return best
@@ -972,7 +974,7 @@ def refine_building(stored: Building, camp: CampaignData, ids: np.ndarray, fpara
         refined = None
         if campaign_id not in f.campaigns and len(members) >= fparams.planes.min_facade_points:
             refined = refine_facade(f, camp, members, polygon, fparams, params, campaign_id,
-                                    seed * 31 + int(f.facade_id), tm)
+                                    derive_seed(seed, int(f.facade_id)), tm)
         facades.append(refined if refined is not None else f)
     rest = ids[owner < 0]
     if len(rest) >= fparams.planes.min_facade_points and not any(campaign_id in f.campaigns for f in stored.facades):
@@ -1123,7 +1125,7 @@ def add_aerial(stored: BuildingMap, cloud: PointCloud, footprints: Footprints, p
         if building is not None and any(campaign_id in r.campaigns for r in building.roofs):
             continue
         ids = _roof_candidates(xyz, x_order, classification, ground, polygon, params)
-        roofs = roof_planes(xyz[ids], polygon, params, campaign_id, seed + b)
+        roofs = roof_planes(xyz[ids], polygon, params, campaign_id, derive_seed(seed, b))
         if not roofs:
             continue
         if building is None:

@@ -68,7 +68,7 @@ from lidarmap.io.atomic import current_umask
 from lidarmap.map.model import Building, BuildingMap, Campaign, RoofPlane
 
 __all__ = ["MapStore", "SCHEMA_VERSION", "APPLICATION_ID", "ENTITIES", "campaign_fingerprint", "writer_lock",
-           "lock_path_for"]
+           "lock_path_for", "damaged_map_error"]
 
 #: Version of the table layout; a map written by a newer lidarmap (higher version) is refused.
 SCHEMA_VERSION = 1
@@ -437,15 +437,33 @@ def _acquire_lock_file(lock_path: Path, map_path: str | Path) -> int | None:
 
 
 def _release_lock_file(fd: int, lock_path: Path, map_path: str | Path) -> None:
-    """Unlock; the lock file goes too when there is no map (a first update that failed leaves nothing behind)."""
+    """Unlock; the lock file goes too when there is no map (a first update that failed, or one given a file that is
+    not a map, leaves nothing behind)."""
     import fcntl
 
-    if not Path(map_path).exists():
+    if not _is_sqlite_file(Path(map_path)):
         with contextlib.suppress(OSError):
             lock_path.unlink()  # while still locked: a process that opened it before sees it is stale
     with contextlib.suppress(OSError):
         fcntl.flock(fd, fcntl.LOCK_UN)
     os.close(fd)
+
+
+def damaged_map_error(exc: BaseException | None, path: str | Path) -> InputError | None:
+    """The one-line error naming the map for SQLite's "database disk image is malformed" (a damaged page is found
+    only when it is read, and SQLite's message names no file); ``None`` for any other exception."""
+    if isinstance(exc, sqlite3.DatabaseError) and not isinstance(exc, (sqlite3.OperationalError,
+                                                                      sqlite3.IntegrityError)):
+        return InputError(f"damaged map: {exc}; restore it from a backup", path)
+    return None
+
+
+def _is_sqlite_file(path: Path) -> bool:
+    try:
+        with path.open("rb") as fh:
+            return fh.read(len(_SQLITE_MAGIC)) == _SQLITE_MAGIC
+    except OSError:
+        return False
 
 
 @contextlib.contextmanager
@@ -538,8 +556,8 @@ class MapStore:
     # -- opening -------------------------------------------------------------------------------------------------------
 
     @staticmethod
-    def _connect(path: Path, busy_timeout: float) -> sqlite3.Connection:
-        uri = "file:" + str(path.resolve()).replace("?", "%3f").replace("#", "%23") + "?mode=rw"
+    def _connect(path: Path, busy_timeout: float, mode: str = "mode=rw") -> sqlite3.Connection:
+        uri = "file:" + str(path.resolve()).replace("?", "%3f").replace("#", "%23") + "?" + mode
         conn = sqlite3.connect(uri, uri=True, timeout=busy_timeout, isolation_level=None, check_same_thread=False)
         conn.row_factory = sqlite3.Row
         conn.execute("PRAGMA foreign_keys = ON")
@@ -595,8 +613,14 @@ class MapStore:
         return cls.open(path, busy_timeout)
 
     @classmethod
-    def open(cls, path: str | Path, busy_timeout: float = BUSY_TIMEOUT_S) -> "MapStore":
-        """Open an existing map; one-line errors for a missing file, a file that is not a map, a newer schema."""
+    def open(cls, path: str | Path, busy_timeout: float = BUSY_TIMEOUT_S, readonly: bool = False) -> "MapStore":
+        """Open an existing map; one-line errors for a missing file, a file that is not a map, a newer schema.
+
+        ``readonly`` (show, history, export, render): a map on a read-only disk or in a folder the user may not write
+        is opened read-only, and where SQLite cannot make its shared-memory file there, read as it is on disk
+        (``immutable``: safe because nobody can write there). Elsewhere the usual connection, which leaves no
+        ``-wal``/``-shm`` files behind when it closes.
+        """
         path = Path(path)
         if not path.exists():
             raise InputError("map not found", path)
@@ -609,10 +633,19 @@ class MapStore:
             raise InputError(f"cannot read map ({exc.strerror})", path) from None
         if head != _SQLITE_MAGIC:
             raise InputError("not a lidarmap map (not an SQLite database)", path)
-        try:
-            conn = cls._connect(path, busy_timeout)
-        except sqlite3.Error as exc:
-            raise InputError(f"cannot open map ({exc})", path) from None
+        writable = os.access(path, os.W_OK) and os.access(path.parent, os.W_OK)
+        modes = ["mode=ro", "mode=ro&immutable=1"] if readonly and not writable else ["mode=rw"]
+        for k, mode in enumerate(modes):
+            try:
+                conn = cls._connect(path, busy_timeout, mode)
+                conn.execute("SELECT 1 FROM sqlite_master LIMIT 1").fetchall()
+                break
+            except sqlite3.OperationalError as exc:
+                if k + 1 < len(modes):
+                    continue
+                raise InputError(f"cannot open map ({exc})", path) from None
+            except sqlite3.Error as exc:
+                raise InputError(f"cannot open map ({exc})", path) from None
         try:
             try:
                 row = conn.execute("SELECT version FROM schema_version").fetchone()
@@ -631,7 +664,7 @@ class MapStore:
             if version < SCHEMA_VERSION:  # pragma: no cover - no older layout exists yet
                 raise InputError(f"map schema version {version} is too old (this lidarmap reads {SCHEMA_VERSION})",
                                  path)
-            if conn.execute("PRAGMA journal_mode").fetchone()[0].lower() != "wal":
+            if "mode=rw" in modes and conn.execute("PRAGMA journal_mode").fetchone()[0].lower() != "wal":
                 with contextlib.suppress(sqlite3.OperationalError):
                     conn.execute("PRAGMA journal_mode = WAL")
             return cls(path, conn)
@@ -648,8 +681,11 @@ class MapStore:
     def __enter__(self) -> "MapStore":
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: object, exc: BaseException | None, tb: object) -> None:
         self.close()
+        damaged = damaged_map_error(exc, self.path)
+        if damaged is not None:
+            raise damaged from None
 
     def __repr__(self) -> str:
         return f"MapStore({str(self.path)!r})"

@@ -67,6 +67,7 @@ from lidarmap.facade.campaign import (
     no_join_error,
 )
 from lidarmap.facade.observe import building_facades
+from lidarmap.facade.sensors import widen_layers
 from lidarmap.facade.params import FacadeParams
 from lidarmap.facade.planes import check_points, join_footprints
 from lidarmap.facade.scan import CampaignScan, CampaignStats, PointClasses, StatsPass
@@ -102,6 +103,9 @@ class UpdateParams:
             cell run as one task sharing one context (the union of their boxes): neighbours' contexts overlap
             almost entirely (each reaches the scanner's range), so a group reads and indexes its points once and
             ships them once. 0 = one building per task. Memory per task: one group's context.
+        trajectory_warn_gap (1.0): a hole (s) between trajectory rows longer than this is interpolated with a
+            warning.
+        trajectory_max_gap (30.0): a trajectory with a longer hole (s) is refused (positions would be guesses).
     """
 
     section = "update"
@@ -110,6 +114,8 @@ class UpdateParams:
         "chunk_points": ">= 0",
         "cell": ">= 0",
         "group_size": ">= 0",
+        "trajectory_warn_gap": "> 0",
+        "trajectory_max_gap": "> 0",
     }
 
     workers: int = 1
@@ -117,6 +123,8 @@ class UpdateParams:
     chunk_points: int = 2_000_000
     cell: float = 25.0
     group_size: float = 60.0
+    trajectory_warn_gap: float = 1.0
+    trajectory_max_gap: float = 30.0
 
     def __post_init__(self) -> None:
         check_params(self)
@@ -260,8 +268,7 @@ def building_rng(seed: int, building_id: str) -> tuple[int, np.random.Generator]
     """A building's seed and generator: the same whatever else is in the run and on every machine (from
     (seed, building id), from :func:`lidarmap.executor.building_seed_sequence`)."""
     sequence = building_seed_sequence(seed, building_id)
-    # sub-steps seed scikit-learn's GMM with seed * 31 + k, which must stay below 2**32
-    return int(sequence.generate_state(1)[0] >> 5), np.random.default_rng(sequence)
+    return int(sequence.generate_state(1)[0]), np.random.default_rng(sequence)
 
 
 def _grow(box: tuple[float, float, float, float], by: float) -> tuple[float, float, float, float]:
@@ -371,14 +378,16 @@ def _joined_ids(camp: CampaignData, job: BuildingJob, params: FacadeParams) -> n
 
 
 def group_task(job: GroupJob, trajectory: Trajectory, fparams: FacadeParams, rparams: RefineParams,
-               strict: bool = False) -> GroupOutcome:
+               noise_factor: float = 1.0, strict: bool = False) -> GroupOutcome:
     """The group's context prepared once (file order, sensor positions, indices), then :func:`building_task` for
-    each member; a member that fails becomes a :class:`TaskFailure` (``strict``: the error is raised)."""
+    each member; a member that fails becomes a :class:`TaskFailure` (``strict``: the error is raised).
+    ``noise_factor``: the campaign's Gaussians are that much wider in fusion (an estimated sensor path)."""
     clock = time.perf_counter()
     order = np.argsort(job.points["index"], kind="stable")  # file order, as the whole campaign would have them
     points = {name: values[order] for name, values in job.points.items()}
     camp = campaign_data(points["xyz"], points["gps_time"], points["ground"], points["building"], trajectory,
                          job.limits, job.track, job.origin, fparams)
+    camp.noise_factor = noise_factor
     timings = {"prepare": time.perf_counter() - clock}
     outcomes: list[BuildingOutcome | TaskFailure] = []
     for member in job.members:
@@ -403,7 +412,8 @@ def building_task(job: BuildingJob, camp: CampaignData, fparams: FacadeParams,
     if job.stored is not None:
         result = refine_building(job.stored, camp, ids, fparams, rparams, job.campaign_id, seed, rng, tm)
         return BuildingOutcome(result, len(ids), tm)
-    facades = building_facades(camp, ids, job.footprint, fparams, job.campaign_id, seed, rng, tm)
+    facades = widen_layers(building_facades(camp, ids, job.footprint, fparams, job.campaign_id, seed, rng, tm),
+                           camp.noise_factor)
     result = Building(building_id=job.building_id, footprint=job.footprint, attributes=dict(job.properties),
                       facades=facades) if facades else None
     return BuildingOutcome(result, len(ids), tm)
@@ -520,12 +530,13 @@ def fuse_campaign(stored: BuildingMap, source: CampaignSource, trajectory: Traje
                   fparams: FacadeParams, rparams: RefineParams, campaign_id: int, seed: int = 0,
                   update: UpdateParams | None = None, spool_dir: str | Path | None = None, strict: bool = False,
                   timings: dict | None = None,
-                  progress: Callable[[int, int], None] | None = None) -> FusedCampaign:
+                  progress: Callable[[int, int], None] | None = None, noise_factor: float = 1.0) -> FusedCampaign:
     """The map after one mobile campaign (see the module doc); ``stored`` is not modified.
 
     ``spool_dir``: a folder for the spool (created, removed at the end), ``None`` keeps it in memory. ``strict``
     runs every building here and raises the first error; otherwise a failing building is reported in
-    ``failed``. ``progress(done, total)`` after every group of buildings. Raises
+    ``failed``. ``progress(done, total)`` after every group of buildings. ``noise_factor`` widens the campaign's
+    Gaussians in fusion (a campaign whose sensor path was estimated, :mod:`lidarmap.map.mls`). Raises
     :class:`~lidarmap.errors.InputError` for an empty campaign, missing GPS times, times the trajectory does not
     cover, and a campaign none of whose building points lies near a footprint.
     """
@@ -546,7 +557,7 @@ def fuse_campaign(stored: BuildingMap, source: CampaignSource, trajectory: Traje
         jobs = (_group_job(group, stored, footprints, tree, campaign, fparams, rparams, campaign_id, seed)
                 for group in groups)
         outcomes: dict[int, Any] = {}
-        for number, result in _run_jobs(jobs, (trajectory, fparams, rparams), update, strict):
+        for number, result in _run_jobs(jobs, (trajectory, fparams, rparams, noise_factor), update, strict):
             if isinstance(result, TaskFailure):  # the group's context could not be prepared: all its buildings
                 outcomes.update((b, result) for b in groups[number])
             else:

@@ -42,3 +42,30 @@ def evaluate_classes(truth_classes: np.ndarray, predicted_building: np.ndarray) 
     labelled = ~np.isin(truth_classes, UNLABELLED_CLASSES)
     truth = truth_classes[labelled] == BUILDING_CLASS
     return scores(confusion_matrix(truth, np.asarray(predicted_building, bool)[labelled]))
+
+
+def tree_scores(tree_like: np.ndarray, truth_classes: np.ndarray, predicted_building: np.ndarray) -> dict[str, Any]:
+    """Scores on every point, where labelled scores are blind (class 1 holds AHN3's trees): the share of the
+    ``tree_like`` points (:func:`lidarmap.segment.vegetation.tree_like`) predicted building, and the share of the
+    points the model adds to class 6 (predicted building, not labelled 6) that are tree-like."""
+    predicted = np.asarray(predicted_building, bool)
+    tree_like = np.asarray(tree_like, bool)
+    added = predicted & (np.asarray(truth_classes) != BUILDING_CLASS)
+    n_tree, n_added = int(tree_like.sum()), int(added.sum())
+    return {
+        "tree_like_points": n_tree,
+        "tree_like_false_positive_rate": float((predicted & tree_like).sum() / n_tree) if n_tree else float("nan"),
+        "added_points": n_added,
+        "added_tree_like_share": float((added & tree_like).sum() / n_added) if n_added else float("nan"),
+    }
+
+
+def combine_tree_scores(parts: list[dict[str, Any]]) -> dict[str, Any]:
+    """:func:`tree_scores` of several parts together (weighted by their counts)."""
+    n_tree = sum(p["tree_like_points"] for p in parts)
+    n_added = sum(p["added_points"] for p in parts)
+    fp = sum(p["tree_like_false_positive_rate"] * p["tree_like_points"] for p in parts if p["tree_like_points"])
+    added = sum(p["added_tree_like_share"] * p["added_points"] for p in parts if p["added_points"])
+    return {"tree_like_points": n_tree,
+            "tree_like_false_positive_rate": fp / n_tree if n_tree else float("nan"),
+            "added_points": n_added, "added_tree_like_share": added / n_added if n_added else float("nan")}

@@ -29,9 +29,11 @@ from lidarmap.segment.features import (
     PointFeatures,
     Transform,
     block_input,
+    metre_factors,
     point_features,
 )
 from lidarmap.segment.modelfile import SegmentModel
+from lidarmap.segment.vegetation import vegetation_filter
 
 #: Class given to input building points that the model calls not-building (they are no longer trusted as 6).
 DEMOTED_CLASS = 1
@@ -59,6 +61,13 @@ class PredictParams:
         point lies in it ((1 - |dx|/half)(1 - |dy|/half)), "uniform" equally.
     threads (0): torch CPU threads; 0 = one per core.
     device ("auto"): "cpu", "cuda" or "auto" (a GPU when there is one).
+    vegetation (True): after the model, points it calls building that look like vegetation get probability 0
+        (:func:`lidarmap.segment.vegetation.vegetation_filter`): at least ``vegetation_share`` of the points within
+        ``vegetation_radius`` m belong to multi-return pulses and their 16 nearest points scatter (scattering >=
+        ``vegetation_scattering``), and at least ``vegetation_vote`` of the 24 nearest building points passed too.
+        Defaults chosen on the recipe's training parts (docs/segmentation.md).
+    vegetation_radius (3.5), vegetation_share (0.75), vegetation_scattering (0.03), vegetation_vote (0.7): see
+        vegetation.
     """
 
     section = "segment"
@@ -71,6 +80,10 @@ class PredictParams:
         "window_weight": "in tent, uniform",
         "threads": ">= 0",
         "device": "in auto, cpu, cuda",
+        "vegetation_radius": "> 0",
+        "vegetation_share": "[0, 1]",
+        "vegetation_scattering": "[0, 1]",
+        "vegetation_vote": "[0, 1]",
     }
 
     overlap: float = 0.25
@@ -82,6 +95,11 @@ class PredictParams:
     window_weight: str = "tent"
     threads: int = 0
     device: str = "auto"
+    vegetation: bool = True
+    vegetation_radius: float = 3.5
+    vegetation_share: float = 0.75
+    vegetation_scattering: float = 0.03
+    vegetation_vote: float = 0.7
 
     def __post_init__(self) -> None:
         check_params(self)
@@ -194,7 +212,7 @@ def spread_to_all(xyz: np.ndarray, fed: np.ndarray, prob: np.ndarray, targets: n
     return out
 
 
-_FUSED: "weakref.WeakKeyDictionary[torch.nn.Module, tuple[tuple, torch.device, torch.nn.Module]]" = \
+_FUSED: weakref.WeakKeyDictionary[torch.nn.Module, tuple[tuple, torch.device, torch.nn.Module]] = \
     weakref.WeakKeyDictionary()
 
 
@@ -247,10 +265,28 @@ def predict(cloud: PointCloud, model: object, params: PredictParams = PredictPar
     if isinstance(model, BaselineModel):
         with torch_threads(params.threads):
             prob = predict_baseline(cloud, model)
-        return prob if targets is None else prob[targets]
-    if isinstance(model, SegmentModel):
-        return predict_pointnet2(cloud, model, params, report, targets)
-    raise TypeError(f"not a segmentation model: {type(model).__name__}")
+        prob = prob if targets is None else prob[targets]
+    elif isinstance(model, SegmentModel):
+        prob = predict_pointnet2(cloud, model, params, report, targets)
+    else:
+        raise TypeError(f"not a segmentation model: {type(model).__name__}")
+    return without_vegetation(cloud, prob, params, targets) if params.vegetation else prob
+
+
+def without_vegetation(cloud: PointCloud, probability: np.ndarray, params: PredictParams,
+                       targets: np.ndarray | None = None) -> np.ndarray:
+    """``probability`` (of every point, or of ``targets``) with 0 for the points above the threshold that the
+    vegetation filter calls vegetation (their neighbourhoods include every point of ``cloud``)."""
+    index = np.arange(len(cloud)) if targets is None else np.flatnonzero(targets)
+    above = np.flatnonzero(probability >= params.threshold)
+    if len(above) == 0:
+        return probability
+    xyz = cloud.xyz * metre_factors(cloud)
+    veg = vegetation_filter(xyz, cloud.attrs.get("number_of_returns"), index[above], params.vegetation_radius,
+                            params.vegetation_share, params.vegetation_scattering, params.vegetation_vote)
+    out = np.array(probability, np.float32, copy=True)
+    out[above[veg]] = 0.0
+    return out
 
 
 def apply_classes(classification: np.ndarray, probability: np.ndarray, threshold: float = 0.5,

@@ -27,8 +27,10 @@ from lidarmap.segment.features import UNLABELLED_CLASSES
 from lidarmap.segment.pointnet2 import Arch
 from lidarmap.segment.train import TrainParams
 
-#: Real data folder (``../shared/data`` from the repository root); ``LIDARMAP_DATA`` overrides it.
-DATA_DIR = Path(os.environ.get("LIDARMAP_DATA", Path(__file__).resolve().parents[2].parent / "shared" / "data"))
+#: Environment variable naming the real data folder.
+DATA_ENV = "LIDARMAP_DATA"
+#: Default real data folder, relative to the working directory (the repository root: the data sit beside it).
+DEFAULT_DATA_DIR = Path("..") / "shared" / "data"
 
 DELFT = "ahn3_delft/ahn3_cropped_1.laz"
 STBARTH = "ign_stbarth/St_Barth_RGAF09_UTM20N_IGN_1988_SB_subset_100m.laz"
@@ -52,12 +54,21 @@ class RecipeData:
     held_out: list[tuple[str, PointCloud]]
 
 
-def read(relative: str, data_dir: Path = DATA_DIR) -> PointCloud:
+def data_dir(given: str | Path | None = None) -> Path:
+    """The real data folder: ``given``, else ``$LIDARMAP_DATA``, else :data:`DEFAULT_DATA_DIR` (from the working
+    directory) -- never a path inside the installed package, which may live anywhere."""
+    if given is not None:
+        return Path(given)
+    return Path(os.environ.get(DATA_ENV) or DEFAULT_DATA_DIR)
+
+
+def read(relative: str, data: str | Path | None = None) -> PointCloud:
+    """Read one file of the recipe (a path relative to the data folder, :func:`data_dir`)."""
     from lidarmap.io.las import (
         read_las,  # here: the recipe's constants need no LAS reader
     )
 
-    return read_las(data_dir / relative, crs=CRS.get(relative))
+    return read_las(data_dir(data) / relative, crs=CRS.get(relative))
 
 
 def simulated(seed: int) -> PointCloud:
@@ -76,20 +87,44 @@ def simulated(seed: int) -> PointCloud:
     return dataclasses.replace(cloud, attrs=attrs)
 
 
-def load(data_dir: Path = DATA_DIR, simulated_cities: bool = True) -> RecipeData:
-    """The training and held-out clouds of the recipe (real names are paths relative to the data folder).
+#: Class given to the tree-like points of the training parts by ``load(vegetation_labels=True)``: high vegetation,
+#: a labelled not-building class.
+VEGETATION_LABEL = 5
+
+
+def label_vegetation(cloud: PointCloud) -> PointCloud:
+    """The cloud with its tree-like points (:func:`lidarmap.segment.vegetation.tree_like`, on its own labels)
+    labelled :data:`VEGETATION_LABEL`, so training learns them as not-building (class 1 carries no label). For
+    training parts only: scoring a held-out part against labels the rule made would flatter the model."""
+    from lidarmap.segment.vegetation import tree_like_cloud
+
+    trees = tree_like_cloud(cloud)
+    attrs = dict(cloud.attrs)
+    attrs["classification"] = np.where(trees, VEGETATION_LABEL, cloud.attrs["classification"]).astype(np.uint8)
+    return dataclasses.replace(cloud, attrs=attrs)
+
+
+def load(data: str | Path | None = None, simulated_cities: bool = True,
+         vegetation_labels: bool = False) -> RecipeData:
+    """The training and held-out clouds of the recipe (real names are paths relative to the data folder
+    :func:`data_dir` ``(data)``).
 
     ``simulated_cities=False`` leaves the simulated cities out (the held-out parts do not depend on it).
+    ``vegetation_labels=True`` labels the tree-like points of the real training clouds as high vegetation
+    (:func:`label_vegetation`; the rule runs on each training part alone, after the split, so nothing of a held-out
+    part is read); the shipped weights were trained without.
     """
     train, held = [], []
     for name in [DELFT, STBARTH]:
-        cloud = read(name, data_dir)
+        cloud = read(name, data)
         x = cloud.xyz[:, 0]
         out = x >= x.min() + HOLDOUT_STRIPS[name]
         train.append((f"{name} (x < min + {HOLDOUT_STRIPS[name]:g} m)", cloud.subset(~out)))
         held.append((f"{name} (x >= min + {HOLDOUT_STRIPS[name]:g} m)", cloud.subset(out)))
     for name in MONTPELLIER:
-        (held if name == HELD_OUT_TILE else train).append((name, read(name, data_dir)))
+        (held if name == HELD_OUT_TILE else train).append((name, read(name, data)))
+    if vegetation_labels:
+        train = [(name, label_vegetation(cloud)) for name, cloud in train]
     if simulated_cities:
         train += [(f"sim/seed {seed}", simulated(seed)) for seed in SIM_SEEDS]
     return RecipeData(train, held)

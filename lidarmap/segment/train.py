@@ -225,6 +225,91 @@ def _batch(sources: list[TrainingSource], weights: np.ndarray, params: TrainPara
     return tuple(np.stack(parts) for parts in zip(*blocks))  # type: ignore[return-value]
 
 
+@dataclasses.dataclass
+class TrainingPlan:
+    """What one training run works on: the sources, how blocks are drawn from them, the epoch size."""
+
+    sources: list[TrainingSource]
+    val_clouds: list[tuple[str, PointCloud]]
+    split: str  # how the validation data was chosen (recorded in the model file)
+    class_weights: np.ndarray  # loss weights (eq. 1)
+    pick: np.ndarray  # probability of drawing a block from each source
+    steps: int  # optimiser steps per epoch
+    labels: np.ndarray  # every source's labels, concatenated (class frequencies)
+
+
+def block_shares(sources: list[TrainingSource], clouds: list[tuple[str, PointCloud]],
+                 source_weights: list[float] | None) -> np.ndarray:
+    """Normalised probability of drawing a block from each source: ``source_weights`` (one per cloud; empty
+    clouds made no source) or, by default, in proportion to the labelled points."""
+    pick = np.array([len(s.labelled) for s in sources] if source_weights is None else
+                    [w for w, (_, c) in zip(source_weights, clouds) if len(c)], np.float64)
+    if len(pick) != len(sources) or not np.all(pick >= 0) or pick.sum() <= 0:
+        raise ValueError("source_weights: one non-negative weight per training cloud, not all zero")
+    return pick / pick.sum()
+
+
+def plan_training(clouds: list[tuple[str, PointCloud]], params: TrainParams,
+                  val_clouds: list[tuple[str, PointCloud]] | None, source_weights: list[float] | None
+                  ) -> TrainingPlan:
+    """Split off validation data (unless given), compute the features, the loss weights and the epoch size."""
+    split = "given validation data" if val_clouds is not None else (
+        f"spatial: {params.val_fraction:.0%} of {params.split_cell:g} m squares (seed {params.seed})")
+    if val_clouds is None:
+        clouds, val_clouds = split_clouds(clouds, params)
+    sources = prepare_sources(clouds, params.spec)
+    labels = np.concatenate([s.labels for s in sources])
+    area = sum(covered_area(s.features.xyz[:, :2]) for s in sources)
+    blocks = params.blocks_per_epoch or math.ceil(params.coverage * area / params.block_size**2)
+    return TrainingPlan(sources, val_clouds, split, class_weights(labels),
+                        block_shares(sources, clouds, source_weights), max(1, math.ceil(blocks / params.batch_size)),
+                        labels)
+
+
+def run_epoch(net: PointNet2Seg, optimiser: torch.optim.Optimizer, plan: TrainingPlan, params: TrainParams,
+              rng: np.random.Generator, device: torch.device, loss_weight: torch.Tensor) -> float:
+    """One epoch of ``plan.steps`` optimiser steps; the mean loss."""
+    net.train()
+    losses = []
+    for _ in range(plan.steps):
+        xyz, channels, labels = (torch.from_numpy(a).to(device)
+                                 for a in _batch(plan.sources, plan.pick, params, params.spec, rng))
+        logits = net(xyz, channels)
+        loss = F.cross_entropy(logits.reshape(-1, logits.shape[-1]), labels.reshape(-1), weight=loss_weight,
+                               ignore_index=IGNORE)
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        optimiser.step()
+        losses.append(float(loss.detach()))
+    return float(np.mean(losses))
+
+
+def training_record(plan: TrainingPlan, params: TrainParams, history: list[dict[str, Any]], seconds: float,
+                    device: torch.device, threads: int) -> dict[str, Any]:
+    """What the model file says about its training (data, parameters, history, validation scores)."""
+    labels = plan.labels
+    return {
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "seed": params.seed,
+        "params": dict(dataclasses.asdict(params).items()),
+        "data": [{"name": s.name, "points": len(s.labels), "labelled": len(s.labelled),
+                  "buildings": len(s.buildings), "block_share": float(w)}
+                 for s, w in zip(plan.sources, plan.pick)],
+        "validation": [{"name": n, "points": len(c)} for n, c in plan.val_clouds or []],
+        "split": plan.split,
+        "epochs": params.epochs,
+        "steps_per_epoch": plan.steps,
+        "class_frequencies": (np.bincount(labels[labels != IGNORE], minlength=2) /
+                              max(1, int((labels != IGNORE).sum()))).tolist(),
+        "history": [{k: v for k, v in h.items() if k != "val"} for h in history],
+        "metrics": next((h["val"] for h in reversed(history) if "val" in h), None),
+        "seconds": round(seconds, 1),
+        "device": str(device),
+        "threads": threads,
+        "torch": str(torch.__version__),
+    }
+
+
 def train(clouds: list[tuple[str, PointCloud]], params: TrainParams = TrainParams(),
           val_clouds: list[tuple[str, PointCloud]] | None = None, arch: Arch | None = None,
           source_weights: list[float] | None = None,
@@ -236,23 +321,8 @@ def train(clouds: list[tuple[str, PointCloud]], params: TrainParams = TrainParam
     scores stay honest).
     """
     started = time.perf_counter()
-    spec = params.spec
-    split = "given validation data" if val_clouds is not None else (
-        f"spatial: {params.val_fraction:.0%} of {params.split_cell:g} m squares (seed {params.seed})")
-    if val_clouds is None:
-        clouds, val_clouds = split_clouds(clouds, params)
-    sources = prepare_sources(clouds, spec)
-    all_labels = np.concatenate([s.labels for s in sources])
-    weights = class_weights(all_labels)
-    arch = arch or Arch(in_channels=len(spec.channels))
-    area = sum(covered_area(s.features.xyz[:, :2]) for s in sources)
-    blocks = params.blocks_per_epoch or math.ceil(params.coverage * area / params.block_size**2)
-    steps = max(1, math.ceil(blocks / params.batch_size))
-    pick = np.array([len(s.labelled) for s in sources] if source_weights is None else
-                    [w for w, (_, c) in zip(source_weights, clouds) if len(c)], np.float64)
-    if len(pick) != len(sources) or not np.all(pick >= 0) or pick.sum() <= 0:
-        raise ValueError("source_weights: one non-negative weight per training cloud, not all zero")
-    pick /= pick.sum()
+    plan = plan_training(clouds, params, val_clouds, source_weights)
+    arch = arch or Arch(in_channels=len(params.spec.channels))
     rng = np.random.default_rng([params.seed, 0])
     device = pick_device(params.device)
     history: list[dict[str, Any]] = []
@@ -261,53 +331,24 @@ def train(clouds: list[tuple[str, PointCloud]], params: TrainParams = TrainParam
         threads = torch.get_num_threads()
         torch.manual_seed(params.seed)
         net = PointNet2Seg(arch).to(device)
-        model = SegmentModel(net, spec, params.block_points, weights.tolist())
+        model = SegmentModel(net, params.spec, params.block_points, plan.class_weights.tolist())
         optimiser = torch.optim.Adam(net.parameters(), lr=params.learning_rate, weight_decay=params.weight_decay)
         scheduler = torch.optim.lr_scheduler.StepLR(optimiser, step_size=params.lr_step, gamma=params.lr_gamma)
-        loss_weight = torch.tensor(weights, dtype=torch.float32, device=device)
+        loss_weight = torch.tensor(plan.class_weights, dtype=torch.float32, device=device)
         for epoch in range(1, params.epochs + 1):
-            net.train()
-            losses = []
-            for _ in range(steps):
-                xyz, channels, labels = (torch.from_numpy(a).to(device)
-                                         for a in _batch(sources, pick, params, spec, rng))
-                logits = net(xyz, channels)
-                loss = F.cross_entropy(logits.reshape(-1, arch.num_classes), labels.reshape(-1),
-                                       weight=loss_weight, ignore_index=IGNORE)
-                optimiser.zero_grad(set_to_none=True)
-                loss.backward()
-                optimiser.step()
-                losses.append(float(loss.detach()))
-            entry: dict[str, Any] = {"epoch": epoch, "loss": float(np.mean(losses)),
+            entry: dict[str, Any] = {"epoch": epoch,
+                                     "loss": run_epoch(net, optimiser, plan, params, rng, device, loss_weight),
                                      "lr": optimiser.param_groups[0]["lr"],
                                      "seconds": round(time.perf_counter() - started, 1)}
             scheduler.step()
             due = epoch == params.epochs or (params.val_every and epoch % params.val_every == 0)
-            if due and val_clouds:
+            if due and plan.val_clouds:
                 net.eval()
-                entry["val"] = validate(model, val_clouds, params.device, params.seed, params.threads)
+                entry["val"] = validate(model, plan.val_clouds, params.device, params.seed, params.threads)
             history.append(entry)
             if report:
                 report(entry)
     net.eval().cpu()
     model.net = net
-    model.training = {
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "seed": params.seed,
-        "params": {k: v for k, v in dataclasses.asdict(params).items()},
-        "data": [{"name": s.name, "points": int(len(s.labels)), "labelled": int(len(s.labelled)),
-                  "buildings": int(len(s.buildings)), "block_share": float(w)} for s, w in zip(sources, pick)],
-        "validation": [{"name": n, "points": int(len(c))} for n, c in val_clouds or []],
-        "split": split,
-        "epochs": params.epochs,
-        "steps_per_epoch": steps,
-        "class_frequencies": (np.bincount(all_labels[all_labels != IGNORE], minlength=2) /
-                              max(1, int((all_labels != IGNORE).sum()))).tolist(),
-        "history": [{k: v for k, v in h.items() if k != "val"} for h in history],
-        "metrics": next((h["val"] for h in reversed(history) if "val" in h), None),
-        "seconds": round(time.perf_counter() - started, 1),
-        "device": str(device),
-        "threads": threads,
-        "torch": str(torch.__version__),
-    }
+    model.training = training_record(plan, params, history, time.perf_counter() - started, device, threads)
     return TrainResult(model, history)

@@ -109,7 +109,7 @@ def scan_aerial(city: City, params: SimParams, rng: np.random.Generator,
                 t0: float) -> tuple[Scan, list[Strip], list[Car]]:
     """Simulate all strips over the city with the aerial acquisition's own parked cars."""
     cars = city.draw_cars(rng)
-    tracer = Tracer(city.scene(cars))
+    tracer = Tracer(city.scene(cars), seed=[params.seed, 2, 6])
     strips = plan_strips(city, params, t0)
     parts = []
     for strip in strips:

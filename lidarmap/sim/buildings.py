@@ -55,6 +55,9 @@ class Element:
     depth: float
     has_interior: bool = False
     room: tuple[float, float, float, float, float] | None = None  # s0, s1, t0, t1, d_back
+    glazing: str = ""  # hard family windows: "glass" | "curtain" | "open"; doors: "flush" | "recessed" | "garage"
+    return_fraction: float = 1.0  # glass: share of the pulses the pane returns
+    frame: tuple[float, float] | None = None  # hard family: frame width and the depth of its front (d, negative)
 
     @property
     def rect(self) -> tuple[float, float, float, float]:
@@ -88,9 +91,9 @@ class Facade:
     def basis(self) -> np.ndarray:
         return self.frame.basis()
 
-    def to_local(self, std: np.ndarray) -> np.ndarray:
+    def to_local(self, sdt: np.ndarray) -> np.ndarray:
         """Façade coordinates (..., 3) to the local frame."""
-        return self.frame.to_crs(std)
+        return self.frame.to_crs(sdt)
 
     def to_facade(self, xyz: np.ndarray) -> np.ndarray:
         return self.frame.to_facade(xyz)
@@ -469,8 +472,8 @@ def _facade_soup(b: Building, f: Facade, soup: Soup, wall: dict) -> None:
     openings = [e for e in f.elements if e.kind in ("window", "door")]
     holes = np.array([e.rect for e in openings]).reshape(-1, 4)
     cells = holed_rectangle(f.width, f.t_bottom, f.t_eave, holes)  # (M, 4, 2)
-    std = np.concatenate([cells, np.zeros(cells.shape[:2] + (1,))], axis=-1)
-    soup.add(f.to_local(quads(std)), Labels(kind=KIND["wall"], facade_id=f.id, **wall))
+    sdt = np.concatenate([cells, np.zeros(cells.shape[:2] + (1,))], axis=-1)
+    soup.add(f.to_local(quads(sdt)), Labels(kind=KIND["wall"], facade_id=f.id, **wall))
     if f.t_top > f.t_eave + 1e-9:
         gable = np.array([[[0.0, f.t_eave, 0.0], [f.width, f.t_eave, 0.0], [f.width / 2, f.t_top, 0.0]]])
         soup.add(f.to_local(gable), Labels(kind=KIND["wall"], facade_id=f.id, **wall))

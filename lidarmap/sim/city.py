@@ -40,6 +40,7 @@ from lidarmap.sim.mesh import (
 )
 from lidarmap.sim.params import SimParams
 from lidarmap.sim.terrain import Terrain
+from lidarmap.sim.trees import crown_leaves, touching_spots
 
 CRS_EPSG = 32632
 LANE_CENTRE = 1.75
@@ -137,13 +138,14 @@ def build_city(params: SimParams) -> City:
     terrain = Terrain.random(rng, bounds)
     buildings = _place_buildings(rng, rows, street_ys, shifts, terrain)
     trees = (_street_trees(rng, streets, terrain, params.trees_per_100m)
-             + _yard_trees(rng, buildings, streets, terrain, bounds))
+             + _yard_trees(rng, buildings, streets, terrain, bounds)
+             + _touching_trees(params, buildings, terrain))
     angle = _rotation(rng)
     origin = (500000.0 + rng.uniform(200.0, 800.0), 5800000.0 + rng.uniform(200.0, 800.0), 0.0)
     soup = terrain.soup(lambda xy: ground_colour(xy, streets))
     for b in buildings:
         soup.extend(building_soup(b))
-    soup.extend(trees_soup(rng, trees))
+    soup.extend(trees_soup(rng, trees, **crown_leaves(params.leaf_off)))
     return City(params=params, crs=CRS.from_epsg(CRS_EPSG), frame=LocalFrame(offset=origin, rotation_deg=angle),
                 terrain=terrain, streets=streets, buildings=buildings, trees=trees, static=soup.build())
 
@@ -228,6 +230,21 @@ def _street_trees(rng: np.random.Generator, streets: list[Street], terrain: Terr
             keep = np.concatenate([[True], np.diff(xs) > 5.0]) if n else np.zeros(0, bool)
             for x in xs[keep]:
                 trees.append(_random_tree(rng, terrain, x, street.y + side * TREE_LINE, max_radius=2.6))
+    return trees
+
+
+def _touching_trees(params: SimParams, buildings: list[Building], terrain: Terrain) -> list[Tree]:
+    """``params.trees_touching`` trees against walls, crowns over roof edges (:mod:`lidarmap.sim.trees`); their own
+    random stream, so a city without them is the city it always was."""
+    existing = [b for b in buildings if b.status == "existing"]
+    spots = touching_spots(np.random.default_rng([params.seed, 7]), [b.ring for b in existing],
+                           [b.eave_z for b in existing], [b.id for b in existing], params.trees_touching)
+    trees = []
+    for s in spots:
+        ground = float(terrain.height(np.array([[s.x, s.y]]))[0])
+        trunk = max(1.0, s.crown_centre_z - s.crown_half_height - ground)
+        trees.append(Tree(x=s.x, y=s.y, ground_z=ground, trunk_height=trunk, trunk_radius=0.15,
+                          crown_radius=s.crown_radius, crown_half_height=s.crown_half_height))
     return trees
 
 

@@ -12,11 +12,12 @@ import numpy as np
 
 #: Surface kinds, by code (per-point truth ``kind``); ``absorber`` never produces a point.
 KINDS = ("ground", "wall", "window_reveal", "window_interior", "door", "structure", "roof", "tree", "car",
-         "absorber")
+         "absorber", "glass", "curtain")
 KIND = {name: code for code, name in enumerate(KINDS)}
 
-#: How a surface treats a laser pulse.
-OPAQUE, LEAF, ABSORBER = 0, 1, 2
+#: How a surface treats a laser pulse: GLASS returns a pulse with the triangle's ``return_fraction`` probability
+#: (the pulse ends there) and lets it through otherwise (no return).
+OPAQUE, LEAF, ABSORBER, GLASS = 0, 1, 2, 3
 
 #: Truth classes (ASPRS): cars and other objects are 1.
 CLASS_OTHER, CLASS_GROUND, CLASS_VEGETATION, CLASS_BUILDING = 1, 2, 5, 6
@@ -36,6 +37,7 @@ class Labels:
     behaviour: int | np.ndarray = OPAQUE
     rgb: tuple | np.ndarray = (128, 128, 128)
     reflectance: float | np.ndarray = 0.3
+    return_fraction: float | np.ndarray = 1.0
 
 
 class Soup:
@@ -79,6 +81,7 @@ class Soup:
             behaviour=cat["behaviour"].astype(np.uint8),
             rgb=cat["rgb"].astype(np.float32).reshape(-1, 3),
             reflectance=cat["reflectance"].astype(np.float32),
+            return_fraction=cat["return_fraction"].astype(np.float32),
         )
 
 
@@ -95,6 +98,7 @@ class SceneMesh:
     behaviour: np.ndarray
     rgb: np.ndarray
     reflectance: np.ndarray
+    return_fraction: np.ndarray  # GLASS only: probability that a pulse meeting the triangle returns from it
 
     def __len__(self) -> int:
         return len(self.triangles)

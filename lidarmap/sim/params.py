@@ -19,6 +19,9 @@ class SimParams:
         campaigns (3): mobile campaigns (``mls_<i>.laz`` + ``trajectory_<i>.csv``); 0 writes none.
         streets (0): parallel streets lined with buildings; 0 = automatic (1 up to 10 buildings, else 2).
         trees_per_100m (7.0): street trees per 100 m of sidewalk (both sides counted separately).
+        trees_touching (0): trees against the walls of existing buildings, crowns over the roof edges
+            (:mod:`lidarmap.sim.trees`).
+        leaf_off (False): bare crowns (twigs: fewer, smaller scatterers) instead of leaf-on ones.
         parking_occupancy (0.5): probability that a parking slot holds a car, drawn anew for every acquisition.
     Aerial scan (als.laz)
         als_density (12.0): mean pulse (first-return) density over the scene in points/m², strip overlap included.
@@ -42,8 +45,26 @@ class SimParams:
         mls_label_error (0.01): fraction of points the simulated classifier labels wrongly.
         mls_misregistration (0.04): largest horizontal shift (metres) of a campaign's rigid misregistration;
             the vertical shift is at most half of it, the rotation about z at most 0.01°. 0 disables it.
+        mls_format ("laz"): how the campaigns are written: "laz" (``mls_<i>.laz``), "ply" (binary little-endian
+            ``mls_<i>.ply``, double coordinates) or "ply_ascii" (ASCII PLY) as public MLS data sets deliver them
+            (docs/mls.md); the trajectory CSV is written in every case.
+        mls_origins (False): PLY only: every point carries its pulse's sensor origin (x_origin, y_origin, z_origin,
+            misregistered like the point).
+        mls_gps_time (True): PLY only: every point carries its GPS time (gps_time).
     Truth
         visibility_cell (0.1): cell size (metres) of the per-façade visibility grids.
+    Family (docs/simulator.md, "Hard family")
+        family ("standard"): "standard" (the scene above) or "hard" (randomised façades, grazing side walls, glass,
+            vans, per-campaign lane/speed/height/rate/scanner, GPS drift; lidarmap/sim/hard.py). The knobs below
+            are read by the hard family only.
+        glass_return_min (0.15), glass_return_max (0.6): bounds of the share of pulses a glass pane returns (each
+            pane draws its own share in these bounds).
+        gps_drift_horizontal (0.12), gps_drift_vertical (0.05): largest smooth GPS drift (metres) of a campaign's
+            trajectory and points.
+        visibility_max_incidence (80.0): a cell counts as seen (truth visibility) only where the line of sight
+            meets the wall at most this far from its normal, degrees (grazing cells are unobservable).
+        visibility_max_spacing (0.3): ... and only where the expected distance between samples there (between
+            neighbouring profiles' stripes, and between pulses of one profile) is at most this, metres.
     """
 
     section = "simulate"
@@ -53,6 +74,7 @@ class SimParams:
         "campaigns": ">= 0",
         "streets": ">= 0",
         "trees_per_100m": ">= 0",
+        "trees_touching": ">= 0",
         "parking_occupancy": ">= 0",
         "als_density": ">= 0",
         "als_altitude": ">= 0",
@@ -70,10 +92,18 @@ class SimParams:
         "mls_max_range": ">= 0",
         "mls_range_noise": ">= 0",
         "mls_min_separation": ">= 0",
-        "mls_tilt": ">= 0",
+        "mls_tilt": "[-60, 60]",
         "mls_label_error": ">= 0",
         "mls_misregistration": ">= 0",
         "visibility_cell": ">= 0",
+        "family": "in standard, hard",
+        "glass_return_min": "[0, 1]",
+        "glass_return_max": "[0, 1]",
+        "gps_drift_horizontal": "[0, 1]",
+        "gps_drift_vertical": "[0, 1]",
+        "visibility_max_incidence": "(0, 90]",
+        "visibility_max_spacing": "> 0",
+        "mls_format": "in laz, ply, ply_ascii",
     }
 
     seed: int = 0
@@ -81,6 +111,8 @@ class SimParams:
     campaigns: int = 3
     streets: int = 0
     trees_per_100m: float = 7.0
+    trees_touching: int = 0
+    leaf_off: bool = False
     parking_occupancy: float = 0.5
     als_density: float = 12.0
     als_altitude: float = 300.0
@@ -102,6 +134,16 @@ class SimParams:
     mls_label_error: float = 0.01
     mls_misregistration: float = 0.04
     visibility_cell: float = 0.1
+    family: str = "standard"
+    glass_return_min: float = 0.15
+    glass_return_max: float = 0.6
+    gps_drift_horizontal: float = 0.12
+    gps_drift_vertical: float = 0.05
+    visibility_max_incidence: float = 80.0
+    visibility_max_spacing: float = 0.3
+    mls_format: str = "laz"
+    mls_origins: bool = False
+    mls_gps_time: bool = True
 
     def __post_init__(self) -> None:
         check_params(self)
@@ -129,6 +171,7 @@ class SimParams:
             (0 <= self.mls_label_error < 0.5, "mls_label_error must be in [0, 0.5)"),
             (0 <= self.mls_misregistration <= 1, "mls_misregistration must be in [0, 1] m"),
             (0.02 <= self.visibility_cell <= 1, "visibility_cell must be in [0.02, 1] m"),
+            (self.glass_return_min <= self.glass_return_max, "glass_return_min must be <= glass_return_max"),
         ]
         for ok, message in checks:
             if not ok:

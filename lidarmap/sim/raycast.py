@@ -2,19 +2,61 @@
 
 Embree finds which triangle a ray meets first (float32 internally); the range is then recomputed in float64 from
 that triangle's plane, so simulated points sit on the true surfaces to ~1e-9 m before noise is added.
+
+Embree (the ``embreex`` package) exists for x86-64 only. ``LIDARMAP_RAY_ENGINE`` picks the engine: ``auto`` (the
+default: Embree when it imports, else trimesh's own tracer), ``embree`` or ``triangle`` (trimesh's numpy tracer with
+an R-tree, any machine, slower). Both give the same first triangle except for rays that graze an edge.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
+from typing import Any
 
 import numpy as np
 import trimesh
-from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-from lidarmap.sim.mesh import ABSORBER, LEAF, SceneMesh
+from lidarmap.errors import ConfigError
+from lidarmap.sim.mesh import ABSORBER, GLASS, LEAF, SceneMesh
+
+#: Environment variable choosing the ray engine, and its values.
+ENGINE_ENV = "LIDARMAP_RAY_ENGINE"
+ENGINES = ("auto", "embree", "triangle")
 
 STEP = 1e-3  # restart distance past a leaf so Embree does not report the same leaf again
+
+
+def _embree_available() -> bool:
+    try:
+        import embreex  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def ray_engine(name: str | None = None) -> str:
+    """The engine to use, "embree" or "triangle", from ``name`` or ``LIDARMAP_RAY_ENGINE`` (default "auto")."""
+    choice = (name or os.environ.get(ENGINE_ENV) or "auto").strip().lower()
+    if choice not in ENGINES:
+        raise ConfigError(f"{ENGINE_ENV}={choice!r}: use one of {', '.join(ENGINES)}")
+    if choice == "triangle":
+        return choice
+    if _embree_available():
+        return "embree"
+    if choice == "embree":
+        raise ConfigError(f"{ENGINE_ENV}=embree but embreex is not installed (x86-64 only); "
+                          "use auto or triangle")
+    return "triangle"
+
+
+def intersector(mesh: trimesh.Trimesh, engine: str) -> Any:
+    """trimesh's ray intersector of ``engine`` ("embree" or "triangle") for ``mesh``."""
+    if engine == "embree":
+        from trimesh.ray.ray_pyembree import RayMeshIntersector
+    else:
+        from trimesh.ray.ray_triangle import RayMeshIntersector
+    return RayMeshIntersector(mesh)
 
 
 @dataclasses.dataclass
@@ -36,15 +78,22 @@ class Returns:
 
 
 class Tracer:
-    """Casts rays against one :class:`SceneMesh` (local frame)."""
+    """Casts rays against one :class:`SceneMesh` (local frame) with ``engine`` (see :func:`ray_engine`).
 
-    def __init__(self, scene: SceneMesh):
+    ``seed`` seeds the per-pulse draws that decide whether glass returns a pulse: calls to :meth:`trace` in the
+    same order give the same draws, so a campaign is deterministic.
+    """
+
+    def __init__(self, scene: SceneMesh, seed: int | list[int] = 0, engine: str | None = None):
         self.scene = scene
+        self.engine = ray_engine(engine)
+        self._glass_draws = np.random.default_rng(seed)
+        self._has_glass = bool((scene.behaviour == GLASS).any())
         tris = scene.triangles
         n = len(tris)
         mesh = trimesh.Trimesh(vertices=tris.reshape(-1, 3), faces=np.arange(3 * n).reshape(n, 3), process=False,
                                validate=False)
-        self._intersector = RayMeshIntersector(mesh)
+        self._intersector = intersector(mesh, self.engine)
         normal = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
         length = np.linalg.norm(normal, axis=1, keepdims=True)
         self.normal = normal / np.where(length > 0, length, 1.0)
@@ -75,7 +124,9 @@ class Tracer:
         """Follow each pulse through leaves until an opaque surface, an absorber, the range limit or 5 returns.
 
         A leaf reflects part of the pulse (a return) and lets the rest through; surfaces closer than
-        ``min_separation`` to the previous return merge with it (no new return), as in a real receiver.
+        ``min_separation`` to the previous return merge with it (no new return), as in a real receiver. Glass
+        returns a pulse (which ends there) when the pulse's draw falls under the pane's ``return_fraction``;
+        otherwise the pulse passes without a return (one draw per pulse, whatever it meets).
         """
         dirs = np.asarray(dirs, dtype=np.float64)
         dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
@@ -86,6 +137,7 @@ class Tracer:
         stop_tri = np.full(n, -1, np.int64)
         stop_range = np.full(n, np.inf)
         active = np.arange(n)
+        draw = self._glass_draws.random(n) if self._has_glass else np.zeros(n)
         rays, tris, ranges = [], [], []
         for _ in range(max_steps):
             if len(active) == 0:
@@ -94,18 +146,19 @@ class Tracer:
             ok = (tri >= 0) & (t <= max_range)
             active, tri, t = active[ok], tri[ok], t[ok]
             behaviour = self.scene.behaviour[tri]
+            passes = (behaviour == GLASS) & (draw[active] >= self.scene.return_fraction[tri])
             absorbed = behaviour == ABSORBER
             separate = (t - last[active]) >= min_separation
-            record = ~absorbed & separate
+            record = ~absorbed & ~passes & separate
             rays.append(active[record])
             tris.append(tri[record])
             ranges.append(t[record])
             last[active[record]] = t[record]
             count[active[record]] += 1
-            stops = (behaviour != LEAF)
+            stops = (behaviour != LEAF) & ~passes
             stop_tri[active[stops]] = tri[stops]
             stop_range[active[stops]] = t[stops]
-            go_on = (behaviour == LEAF) & (count[active] < max_returns)
+            go_on = ((behaviour == LEAF) & (count[active] < max_returns)) | passes
             start[active[go_on]] = t[go_on] + STEP
             active = active[go_on]
         ray = np.concatenate(rays) if rays else np.zeros(0, np.int64)

@@ -37,6 +37,11 @@ class Scan:
         truth = {k: np.concatenate([s.truth[k] for s in scans]) for k in LABEL_FIELDS}
         return Scan(truth=truth, **fields)
 
+    def take(self, index: np.ndarray) -> Scan:
+        """The points at ``index`` (in that order), truth included."""
+        fields = {f.name: getattr(self, f.name)[index] for f in dataclasses.fields(Scan) if f.name != "truth"}
+        return Scan(truth={k: v[index] for k, v in self.truth.items()}, **fields)
+
     def to_cloud(self, frame: LocalFrame, crs, transform=None) -> PointCloud:
         """A PointCloud in the CRS; ``transform`` (CRS points -> CRS points) applies a campaign's misregistration."""
         xyz = frame.to_crs(self.xyz)

@@ -20,7 +20,9 @@ from lidarmap.io.npz import write_npz
 from lidarmap.io.trajectory import write_trajectory
 from lidarmap.sim.aerial import scan_aerial
 from lidarmap.sim.buildings import solid_triangles
-from lidarmap.sim.city import Car, City, build_city
+from lidarmap.sim.city import Car, City
+from lidarmap.sim.family import build_family_city
+from lidarmap.sim.hard import CampaignSetup, Drift, Van, campaign_setup, gps_drift
 from lidarmap.sim.mesh import KINDS
 from lidarmap.sim.mobile import (
     Campaign,
@@ -30,10 +32,11 @@ from lidarmap.sim.mobile import (
     sensor_path,
 )
 from lidarmap.sim.params import SimParams
+from lidarmap.sim.plyout import write_points_ply
 from lidarmap.sim.raycast import Tracer
 from lidarmap.sim.scan import Scan
 from lidarmap.sim.truth import FORMAT, VERSION, save_ply, solid_mesh, write_json
-from lidarmap.sim.visibility import HitGrids, seen_grid, visible_fraction
+from lidarmap.sim.visibility import HitGrids, Observability, seen_grid, visible_fraction
 
 #: ``progress(task, completed, total)`` is called as work advances (task: "city", "aerial", "mobile <i>", "truth").
 Progress = Callable[[str, int, int], None]
@@ -71,7 +74,7 @@ def simulate(out_dir: str | Path, params: SimParams | None = None, progress: Pro
     started = time.perf_counter()
 
     report("city", 0, 1)
-    city = build_city(params)
+    city = build_family_city(params)
     report("city", 1, 1)
 
     als_doc = _aerial(city, params, out, report)
@@ -83,7 +86,7 @@ def simulate(out_dir: str | Path, params: SimParams | None = None, progress: Pro
     _write_meshes(city, out / "truth" / "meshes")
     doc = _scene_doc(city, params, als_doc, campaign_docs, fractions)
     write_json(out / "truth" / "scene.json", doc)
-    _remove_stale(out, params.campaigns, [b.id for b in city.buildings])
+    _remove_stale(out, params.campaigns, [b.id for b in city.buildings], params.mls_format)
     report("truth", 1, 1)
     return SimResult(out_dir=out, als=out / "als.laz", als_points=als_doc["points"],
                      mls=[out / c["file"] for c in campaign_docs], mls_points=[c["points"] for c in campaign_docs],
@@ -92,12 +95,14 @@ def simulate(out_dir: str | Path, params: SimParams | None = None, progress: Pro
 
 
 #: Per-campaign and per-building outputs: files of an earlier, larger simulation in the same folder are removed.
-_INDEXED = ("mls_{}.laz", "trajectory_{}.csv", "truth/mls_{}_labels.npz", "truth/visibility_{}.npz")
+_INDEXED = ("mls_{}.laz", "mls_{}.ply", "trajectory_{}.csv", "truth/mls_{}_labels.npz", "truth/visibility_{}.npz")
 
 
-def _remove_stale(out: Path, campaigns: int, building_ids: list[int]) -> None:
-    """Delete simulator outputs this run did not write (same names, other indices), so the folder is consistent."""
-    wanted = {p.format(i) for p in _INDEXED for i in range(1, campaigns + 1)}
+def _remove_stale(out: Path, campaigns: int, building_ids: list[int], mls_format: str = "laz") -> None:
+    """Delete simulator outputs this run did not write (same names, other indices or the other point format), so
+    the folder is consistent."""
+    other = "mls_{}.ply" if mls_format == "laz" else "mls_{}.laz"
+    wanted = {p.format(i) for p in _INDEXED if p != other for i in range(1, campaigns + 1)}
     wanted |= {f"truth/meshes/building_{i}.ply" for i in building_ids}
     for template in (*_INDEXED, "truth/meshes/building_{}.ply"):
         name = re.compile(re.escape(template).replace(r"\{\}", r"\d+"))
@@ -121,35 +126,81 @@ def _aerial(city: City, params: SimParams, out: Path, report: Progress) -> dict:
 
 def _mobile(city: City, params: SimParams, index: int, out: Path, report: Progress,
             fractions: dict[int, dict[str, dict[str, float]]]) -> dict:
-    """One campaign: scan, write LAZ/trajectory/labels, compute visibility truth; returns its scene.json entry."""
+    """One campaign: scan, write LAZ/trajectory/labels, compute visibility truth; returns its scene.json entry.
+
+    Hard family: the campaign scans with its own lane, speed, sensor height, rate and scanner heads
+    (:func:`lidarmap.sim.hard.campaign_setup`), and its trajectory and points carry a smooth GPS drift.
+    """
     task = f"mobile {index}"
     rng = np.random.default_rng([params.seed, 3, index])
-    campaign = plan_campaign(rng, index, params, city)
+    setup = campaign_setup(params, index) if params.family == "hard" else None
+    scan_params = setup.params if setup else params
+    campaign = plan_campaign(rng, index, scan_params, city)
+    if setup:
+        campaign.lane_offset = setup.lane_offset
     cars = city.draw_cars(rng)
-    tracer = Tracer(city.scene(cars))
-    path = sensor_path(city, campaign, params)
+    tracer = Tracer(city.scene(cars), seed=[params.seed, 6, index])
+    path = sensor_path(city, campaign, scan_params)
+    yaws = setup.yaws if setup else (params.mls_tilt,)
     done = [0]
 
     def on_chunk(n: int, total: int) -> None:
         done[0] += n
-        report(task, done[0], total)
+        report(task, done[0], total * len(yaws))
 
     hits = HitGrids(city.facades, params.visibility_cell)
-    scan = scan_campaign(campaign, params, rng, tracer, path, on_chunk,
-                         on_stops=lambda *chunk: hits.add(tracer.scene.facade_id, *chunk))
-    names = {"file": f"mls_{index}.laz", "trajectory": f"trajectory_{index}.csv",
+    scans = [scan_campaign(campaign, dataclasses.replace(scan_params, mls_tilt=yaw), rng, tracer, path, on_chunk,
+                           on_stops=lambda *chunk: hits.add(tracer.scene.facade_id, *chunk)) for yaw in yaws]
+    scan = scans[0] if len(scans) == 1 else _by_time(Scan.concatenate(scans))
+    drift = gps_drift(params, index, path.time[0], path.time[-1]) if setup else None
+    suffix = "laz" if params.mls_format == "laz" else "ply"
+    names = {"file": f"mls_{index}.{suffix}", "trajectory": f"trajectory_{index}.csv",
              "labels": f"truth/mls_{index}_labels.npz", "visibility": f"truth/visibility_{index}.npz"}
-    write_las(out / names["file"], scan.to_cloud(city.frame, city.crs, transform=campaign.misregister))
-    write_trajectory(out / names["trajectory"], _crs_trajectory(city, campaign, path))
+    cloud = scan.to_cloud(city.frame, city.crs, transform=_delivered(campaign, drift, scan.gps_time))
+    if params.mls_format == "laz":
+        write_las(out / names["file"], cloud)
+    else:
+        _write_mobile_ply(out / names["file"], cloud, city, campaign, path, params, drift)
+    write_trajectory(out / names["trajectory"], _crs_trajectory(city, campaign, path, drift))
     _write_labels(out / names["labels"], scan)
-    _visibility(city, params, tracer, path, hits, campaign, out / names["visibility"], fractions)
+    _visibility(city, params, tracer, path, hits, campaign, out / names["visibility"], fractions, yaws, setup)
+    extra = {"setup": setup.to_json(), "gps_drift": drift.to_json()} if setup and drift else {}
     return {"id": index, **names, "points": len(scan), **campaign.to_json(),
-            "cars": [_car_json(city, c) for c in cars]}
+            "cars": [_car_json(city, c) for c in cars], **extra}
 
 
-def _crs_trajectory(city: City, campaign: Campaign, path) -> Trajectory:
-    """The trajectory as delivered: CRS, misregistered like the points, yaw wrapped to [-pi, pi)."""
-    xyz = campaign.misregister(city.frame.to_crs(path.xyz))
+def _by_time(scan: Scan) -> Scan:
+    """Points of several scanner heads interleaved by GPS time, as one receiver's file would hold them."""
+    return scan.take(np.argsort(scan.gps_time, kind="stable"))
+
+
+def _write_mobile_ply(target: Path, cloud, city: City, campaign: Campaign, path, params: SimParams,
+                      drift: Drift | None) -> None:
+    """A campaign as a PLY file (``mls_format``): double coordinates, the LAS attributes as PLY properties, GPS
+    time and the pulses' sensor origins (delivered like the points: misregistered, drifted) when asked."""
+    columns = {"x": cloud.xyz[:, 0], "y": cloud.xyz[:, 1], "z": cloud.xyz[:, 2]}
+    for name in ("intensity", "return_number", "number_of_returns", "classification", "red", "green", "blue"):
+        columns[name] = cloud.attrs[name]
+    gps_time = cloud.attrs["gps_time"]
+    if params.mls_gps_time:
+        columns["gps_time"] = gps_time
+    if params.mls_origins:
+        origins = _delivered(campaign, drift, gps_time)(city.frame.to_crs(path.at(gps_time)[0]))
+        columns.update(x_origin=origins[:, 0], y_origin=origins[:, 1], z_origin=origins[:, 2])
+    write_points_ply(target, columns, [f"crs EPSG:{city.crs.to_epsg()}", "lidarmap simulator mobile campaign"],
+                     binary=params.mls_format == "ply")
+
+
+def _delivered(campaign: Campaign, drift: Drift | None, gps_time: np.ndarray) -> Callable:
+    """CRS points as delivered: misregistered, and drifted with the GPS at each point's time."""
+    if drift is None:
+        return campaign.misregister
+    return lambda xyz: campaign.misregister(xyz) + drift.at(gps_time)
+
+
+def _crs_trajectory(city: City, campaign: Campaign, path, drift: Drift | None = None) -> Trajectory:
+    """The trajectory as delivered: CRS, misregistered (and drifted) like the points, yaw wrapped to [-pi, pi)."""
+    xyz = _delivered(campaign, drift, path.time)(city.frame.to_crs(path.xyz))
     rpy = path.rpy.copy()
     yaw = rpy[:, 2] + math.radians(city.frame.rotation_deg + campaign.rotation_deg)
     rpy[:, 2] = (yaw + math.pi) % (2 * math.pi) - math.pi
@@ -157,15 +208,23 @@ def _crs_trajectory(city: City, campaign: Campaign, path) -> Trajectory:
 
 
 def _visibility(city: City, params: SimParams, tracer: Tracer, path, hits: HitGrids, campaign: Campaign,
-                target: Path, fractions: dict) -> None:
-    """Write the campaign's seen/hit grids and record each element's visible fractions."""
+                target: Path, fractions: dict, yaws: tuple[float, ...], setup: CampaignSetup | None) -> None:
+    """Write the campaign's seen/hit grids and record each element's visible fractions.
+
+    Hard family: seen by any scanner head, and only where observable (incidence and sample spacing, see
+    :class:`lidarmap.sim.visibility.Observability`).
+    """
     cell = params.visibility_cell
-    normals = profile_plane_normals(path, params.mls_tilt)
+    rule = Observability()
+    if setup is not None:
+        rule = Observability(max_incidence=params.visibility_max_incidence, max_spacing=params.visibility_max_spacing,
+                             angular_step=setup.params.mls_angular_step)
     facades = city.facades
     arrays: dict[str, np.ndarray] = {"facade_ids": np.array([f.id for f in facades], np.int32),
                                      "cell_size": np.array(cell)}
     for f in facades:
-        seen = seen_grid(tracer, f, path.xyz, normals, cell, params.mls_max_range)
+        seen = np.logical_or.reduce([seen_grid(tracer, f, path.xyz, profile_plane_normals(path, yaw), cell,
+                                               params.mls_max_range, rule) for yaw in yaws])
         arrays[f"seen_{f.id}"] = seen
         arrays[f"hit_{f.id}"] = hits.grids[f.id]
         for e in f.elements:
@@ -216,12 +275,13 @@ def _pt(city: City, p: np.ndarray) -> list[float]:
 def _car_json(city: City, c: Car) -> dict:
     return {"centre": _pt(city, [c.x, c.y, c.ground_z]),
             "heading_deg": math.degrees(c.heading) + city.frame.rotation_deg,
-            "length": c.length, "width": c.width, "height": c.height}
+            "length": c.length, "width": c.width, "height": c.height, "type": "van" if isinstance(c, Van) else "car"}
 
 
 def _scene_doc(city: City, params: SimParams, als: dict, campaigns: list[dict], fractions: dict) -> dict:
     return {
-        "format": FORMAT, "version": VERSION, "seed": params.seed, "params": dataclasses.asdict(params),
+        "format": FORMAT, "version": VERSION, "seed": params.seed, "family": params.family,
+        "params": dataclasses.asdict(params),
         "crs": {"epsg": 32632, "wkt": city.crs.to_wkt()},
         "local_frame": {"offset": list(city.frame.offset), "rotation_deg": city.frame.rotation_deg,
                         "formula": "crs = Rz(rotation_deg) @ local + offset"},
@@ -263,9 +323,21 @@ def _facade_json(city: City, f, edge: int, fractions: dict) -> dict:
 
 
 def _element_json(city: City, f, e, fractions: dict) -> dict:
-    std = np.array([[e.s0, e.t0, e.depth], [e.s1, e.t0, e.depth], [e.s1, e.t1, e.depth], [e.s0, e.t1, e.depth]])
-    corners = city.frame.to_crs(f.to_local(std))
+    sdt = np.array([[e.s0, e.t0, e.depth], [e.s1, e.t0, e.depth], [e.s1, e.t1, e.depth], [e.s0, e.t1, e.depth]])
+    corners = city.frame.to_crs(f.to_local(sdt))
     frac = fractions.get(e.id, {"visible_fraction": {}, "hit_fraction": {}})
     return {"id": e.id, "facade_id": e.facade_id, "kind": e.kind, "subtype": e.subtype,
             "rect": [e.s0, e.s1, e.t0, e.t1], "depth": e.depth, "has_interior": e.has_interior,
-            "room": list(e.room) if e.room else None, "corners": corners.tolist(), **frac}
+            "room": list(e.room) if e.room else None, "corners": corners.tolist(), **frac, **_hard_json(e)}
+
+
+def _hard_json(e) -> dict:
+    """Hard-family extras of an element: glazing or door style, a glass pane's return share, the frame."""
+    if not e.glazing:
+        return {}
+    out = {"glazing": e.glazing}
+    if e.glazing == "glass":
+        out["return_fraction"] = e.return_fraction
+    if e.frame is not None:
+        out["frame"] = {"width": e.frame[0], "front_depth": e.frame[1]}
+    return out

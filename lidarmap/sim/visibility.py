@@ -13,6 +13,8 @@ covering s in [0, width) and t in [0, t_top) (t = 0 is the façade origin, the l
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from lidarmap.sim.buildings import Facade
@@ -23,18 +25,44 @@ def grid_shape(f: Facade, cell: float) -> tuple[int, int]:
     return max(1, int(np.ceil(f.t_top / cell))), max(1, int(np.ceil(f.width / cell)))
 
 
+@dataclasses.dataclass(frozen=True)
+class Observability:
+    """When a cell with a line of sight counts as seen (the hard family; the defaults accept every such cell).
+
+    ``max_incidence``: largest angle (degrees) between the line of sight and the wall normal;
+    ``max_spacing``: largest expected distance (metres) between samples at the cell -- between neighbouring
+    profiles' stripes along the wall, and between pulses within a profile (:func:`pulse_spacing`);
+    ``angular_step``: the scanner's angle between pulses, degrees.
+    """
+
+    max_incidence: float = 90.0
+    max_spacing: float = np.inf
+    angular_step: float = 0.4
+
+    @property
+    def limited(self) -> bool:
+        return self.max_incidence < 90.0 or np.isfinite(self.max_spacing)
+
+
 def seen_grid(tracer: Tracer, f: Facade, sensors: np.ndarray, plane_normals: np.ndarray, cell: float,
-              max_range: float) -> np.ndarray:
-    """Cells of ``f`` with a clear line of sight from the profile plane through them (see module doc)."""
+              max_range: float, observability: Observability = Observability()) -> np.ndarray:
+    """Cells of ``f`` with a clear line of sight from the profile plane through them (see module doc).
+
+    With a limited ``observability`` the profiles are also interpolated (up to 8 in between) where their stripes
+    on the wall lie farther apart than half a cell, so a wall swept at a grazing angle is judged everywhere.
+    """
     rows, cols = grid_shape(f, cell)
     grid = np.zeros((rows, cols), bool)
     t = (np.arange(rows) + 0.5) * cell
     h = plane_normals
+    stripe = np.zeros(len(h))
+    if observability.limited:
+        sensors, h, stripe = _densified(f, sensors, h, cell)
     hu = h @ f.u
     usable = np.abs(hu) > 0.1  # profile planes nearly parallel to the wall never sweep across it
     if not usable.any():
         return grid
-    h, p, hu = h[usable], sensors[usable], hu[usable]
+    h, p, hu, stripe = h[usable], sensors[usable], hu[usable], stripe[usable]
     # s where profile plane k (h . (x - p) = 0) crosses the façade line at height t_j
     s = ((np.einsum("ij,ij->i", h, p - f.origin))[:, None] - t[None, :] * h[:, 2:3]) / hu[:, None]
     k, j = np.nonzero((s >= 0) & (s < f.width))
@@ -46,12 +74,55 @@ def seen_grid(tracer: Tracer, f: Facade, sensors: np.ndarray, plane_normals: np.
     dist = np.linalg.norm(ray, axis=1)
     facing = (p[k] - target) @ f.normal > 0.05
     ok = facing & (dist <= max_range) & (dist > 0.5)
+    if observability.limited:
+        cos_inc = np.maximum((p[k] - target) @ f.normal / np.maximum(dist, 1e-9), 1e-6)
+        in_profile = pulse_spacing(ray / np.maximum(dist, 1e-9)[:, None], h[k], f.normal, dist,
+                                    np.radians(observability.angular_step))
+        ok &= (cos_inc >= np.cos(np.radians(observability.max_incidence)))
+        ok &= (np.maximum(in_profile, stripe[k]) <= observability.max_spacing)
     k, j, s, ray, dist = k[ok], j[ok], s[ok], ray[ok], dist[ok]
     tri, _ = tracer.first_hit(p[k], ray / dist[:, None])
     seen = (tri >= 0) & (tracer.scene.facade_id[np.maximum(tri, 0)] == f.id)
     i = np.minimum((s / cell).astype(int), cols - 1)
     grid[j[seen], i[seen]] = True
     return grid
+
+
+def pulse_spacing(r: np.ndarray, h: np.ndarray, n: np.ndarray, dist: np.ndarray, step: float) -> np.ndarray:
+    """Distance on the wall between neighbouring pulses of one profile (metres).
+
+    A pulse turning by dθ in its profile plane (normal h) moves its hit on the wall (normal n) by
+    dist * |r' - r (n.r') / (n.r)| dθ, with r' = h x r the direction the pulse turns to.
+    """
+    turn = np.cross(h, r)
+    turn /= np.maximum(np.linalg.norm(turn, axis=1, keepdims=True), 1e-12)
+    nr = r @ n
+    nr = np.where(np.abs(nr) > 1e-6, nr, 1e-6)
+    return dist * step * np.linalg.norm(turn - r * ((turn @ n) / nr)[:, None], axis=1)
+
+
+def _densified(f: Facade, sensors: np.ndarray, normals: np.ndarray,
+               cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Poses interpolated between the profiles and each pose's stripe spacing on the wall (of the real profiles).
+
+    Consecutive profile planes (normal h, sensor moving by step along the track T) cross the wall (axis u)
+    step * |h.T| / |h.u| apart.
+    """
+    forward = np.gradient(sensors, axis=0)  # per pose: step along the track
+    along = np.abs(np.einsum("ij,ij->i", normals, forward))
+    hu = np.abs(normals @ f.u)
+    stripe = np.where(hu > 1e-6, along / np.maximum(hu, 1e-6), np.inf)
+    usable = hu > 0.1
+    spacing = float(np.median(stripe[usable])) if usable.any() and np.isfinite(stripe[usable]).any() else 0.0
+    m = int(np.clip(np.ceil(spacing / (cell / 2)), 1, 8)) if np.isfinite(spacing) else 1
+    if m == 1 or len(sensors) < 2:
+        return sensors, normals, stripe
+    x = np.arange(len(sensors))
+    fine = np.linspace(0, len(sensors) - 1, (len(sensors) - 1) * m + 1)
+    dense = np.column_stack([np.interp(fine, x, sensors[:, k]) for k in range(3)])
+    dense_n = np.column_stack([np.interp(fine, x, normals[:, k]) for k in range(3)])
+    dense_n /= np.linalg.norm(dense_n, axis=1, keepdims=True)
+    return dense, dense_n, np.interp(fine, x, stripe)
 
 
 class HitGrids:

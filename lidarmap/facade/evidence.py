@@ -1,0 +1,254 @@
+"""Façade extraction: ray evidence — which cells of a façade the laser went through, and how well each was sampled.
+
+A cell without wall returns is not yet a hole: the scanner may simply have put no pulse there (the gaps between
+the scan lines on a wall seen at a grazing angle, a far wall's sparse rows). A cell is an *opening* only with
+positive evidence that pulses crossed the wall plane there:
+
+* returns more than ``pass_depth`` behind the local wall (glass, curtains and door leaves a few cm to dm behind
+  it; rooms and anything farther, projected along their ray onto the plane);
+* pulses that crossed the plane and returned nothing. A mobile profiler fires at a fixed rate, so the returns of
+  one scan line ordered by GPS time leave a gap of ``k`` pulse periods where ``k - 1`` pulses came back empty; their
+  directions lie between those of the gap's two returns (:func:`missed_pulse_crossings`).
+
+Cells with neither kind of evidence and no return are *not observed*: never a hole. Per cell the counts also give
+the sampling quality of the observation (pulses per cell, incidence), from which the map weighs this campaign's
+votes against another's (:func:`vote_weights`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy import ndimage
+
+from lidarmap.facade.layers import cell_index, square
+from lidarmap.facade.occlusion import project_rays
+
+if TYPE_CHECKING:  # pragma: no cover
+    from lidarmap.facade.params import FacadeParams
+
+
+@dataclasses.dataclass
+class CellEvidence:
+    """Pulse counts per cell of a façade grid (rows, cols) and the mean cosine of their incidence on the wall."""
+
+    wall: np.ndarray  # returns on the wall plane (within pass_depth of the local wall)
+    recessed: np.ndarray  # returns pass_depth .. layer_back behind it (glass, curtains, door leaves)
+    through: np.ndarray  # returns farther behind, counted where their pulse crossed the plane
+    missed: np.ndarray  # pulses that crossed the plane there and returned nothing
+    cos_incidence: np.ndarray  # mean |cos| of the angle between those pulses and the wall normal (0: no pulse)
+    pulse_order: bool = True  # whether GPS times ordered the pulses (else ``missed`` could not be counted)
+
+    @property
+    def passed(self) -> np.ndarray:
+        """Pulses that went through the wall plane."""
+        return self.recessed + self.through + self.missed
+
+    @property
+    def pulses(self) -> np.ndarray:
+        return self.wall + self.passed
+
+
+def local_wall_depth(sdt: np.ndarray, s0: float, params: FacadeParams) -> np.ndarray:
+    """The depth of the wall next to each point: the median depth of the points within ``wall_band`` of the plane
+    per ``wall_block`` of s (0 where a block has fewer than 20 of them). A wall that bows or drifts by a few cm
+    (GPS drift along a long façade) must not read as recessed glass."""
+    ev = params.evidence
+    sdt = np.asarray(sdt, dtype=np.float64).reshape(-1, 3)
+    block = np.floor((sdt[:, 0] - s0) / ev.wall_block).astype(np.int64)
+    near = np.abs(sdt[:, 2]) <= ev.wall_band
+    out = np.zeros(len(sdt))
+    if not near.any():
+        return out
+    b_near, d_near = block[near], sdt[near, 2]
+    order = np.lexsort((d_near, b_near))
+    b_sorted, d_sorted = b_near[order], d_near[order]
+    uniq, start, count = np.unique(b_sorted, return_index=True, return_counts=True)
+    median = 0.5 * (d_sorted[start + (count - 1) // 2] + d_sorted[start + count // 2])
+    median[count < 20] = 0.0
+    pos = np.clip(np.searchsorted(uniq, block), 0, len(uniq) - 1)
+    return np.where(uniq[pos] == block, median[pos], 0.0)
+
+
+def _fill_sensors(sensors: np.ndarray, gps: np.ndarray) -> np.ndarray:
+    """Sensor positions where unknown (NaN: ground points) interpolated in time from the known ones."""
+    known = np.isfinite(sensors).all(axis=1)
+    if known.all() or known.sum() < 2:
+        return sensors
+    order = np.argsort(gps[known], kind="stable")
+    kt, ks = gps[known][order], sensors[known][order]
+    out = sensors.copy()
+    for k in range(3):
+        out[~known, k] = np.interp(gps[~known], kt, ks[:, k])
+    return out
+
+
+def scanner_heads(sdt: np.ndarray, sensors_sdt: np.ndarray, gps: np.ndarray) -> np.ndarray:
+    """Which scanner head fired each return (0 or 1): two crossed profilers fire at the same times and one file
+    interleaves them, so their scan lines are told apart by the yaw of the profile plane each pulse lies in
+    (atan(forward / sideways) of its direction, forward = the sensor's direction of travel). One head (0 for all)
+    unless at least 20 % of the pulses lie in planes yawed more than 10° either way."""
+    heads = np.zeros(len(gps), dtype=np.int64)
+    order = np.argsort(gps, kind="stable")
+    t, c = gps[order], sensors_sdt[order]
+    if len(t) < 20 or t[-1] - t[0] <= 0:
+        return heads
+    span = max(0.05, 1e-3 * (t[-1] - t[0]))  # travel direction over +-span seconds
+    lo = np.searchsorted(t, t - span)
+    hi = np.clip(np.searchsorted(t, t + span, side="right") - 1, 0, len(t) - 1)
+    travel = c[hi] - c[lo]
+    travel[:, 1] = 0.0  # façade coordinates: t is the vertical
+    travel /= np.maximum(np.linalg.norm(travel, axis=1, keepdims=True), 1e-9)
+    d = sdt[order] - c
+    forward = np.sum(d * travel, axis=1)
+    sideways = d[:, 0] * travel[:, 2] - d[:, 2] * travel[:, 0]
+    yaw = np.degrees(np.arctan(forward / np.where(np.abs(sideways) > 1e-9, sideways, 1e-9)))
+    plus, minus = float(np.mean(yaw > 10.0)), float(np.mean(yaw < -10.0))
+    if plus >= 0.2 and minus >= 0.2:
+        heads[order] = (yaw > 0).astype(np.int64)
+    return heads
+
+
+def missed_pulse_crossings(sdt: np.ndarray, sensors_sdt: np.ndarray, gps: np.ndarray, max_range: float,
+                           params: FacadeParams) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Where the pulses that returned nothing crossed the plane d = 0: (s, t, |cos incidence|); ``None`` when the
+    times do not order the pulses (most returns share their time with the next one: a time per scan line only).
+
+    ``sdt`` are returns around the façade in façade coordinates (everything a pulse could hit between the sensor
+    and far behind the wall, ground included), ``sensors_sdt`` their pulses' origins (NaN where unknown:
+    interpolated in time) and ``gps`` their times. The returns of each scanner head (:func:`scanner_heads`) are
+    ordered by time; consecutive returns ``k`` pulse periods apart (the period: the 20th percentile of the
+    positive time steps) leave ``k - 1`` missed pulses when ``k`` is 2 .. ``max_missed_pulses + 1`` and the angle
+    per period matches the line's angular step (0.4-1.6 x, else the two returns belong to different scan lines);
+    their directions are interpolated between the two returns'. Crossings beyond ``max_range`` or at incidences
+    above ``missed_max_incidence_deg`` are dropped: no return is expected there.
+    """
+    empty = (np.zeros(0), np.zeros(0), np.zeros(0))
+    if len(gps) < 3:
+        return empty
+    sensors_sdt = _fill_sensors(np.asarray(sensors_sdt, dtype=np.float64), gps)
+    heads = scanner_heads(sdt, sensors_sdt, gps)
+    parts = [_missed_in_line(sdt[heads == h], sensors_sdt[heads == h], gps[heads == h], max_range, params)
+             for h in np.unique(heads)]
+    if any(p is None for p in parts):
+        return None
+    return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))  # type: ignore[return-value]
+
+
+def _missed_in_line(sdt: np.ndarray, sensors_sdt: np.ndarray, gps: np.ndarray, max_range: float,
+                    params: FacadeParams) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """:func:`missed_pulse_crossings` for the returns of one scanner head."""
+    ev = params.evidence
+    empty = (np.zeros(0), np.zeros(0), np.zeros(0))
+    if len(gps) < 3:
+        return empty
+    order = np.argsort(gps, kind="stable")
+    p, c, g = sdt[order], sensors_sdt[order], gps[order]
+    dt = np.diff(g)
+    positive = dt[dt > 1e-9]
+    if len(positive) < 0.5 * len(dt):
+        return None  # most returns share their time with the next: no per-pulse times, no scan-line order
+    if len(positive) < 10:
+        return empty
+    period = float(np.quantile(positive, 0.2))
+    steps = np.rint(dt / period).astype(np.int64)
+    sens = c[:-1]
+    ok = np.isfinite(sens).all(axis=1)
+    ua = p[:-1] - sens
+    ub = p[1:] - sens
+    ua /= np.maximum(np.linalg.norm(ua, axis=1, keepdims=True), 1e-9)
+    ub /= np.maximum(np.linalg.norm(ub, axis=1, keepdims=True), 1e-9)
+    angle = np.arccos(np.clip(np.sum(ua * ub, axis=1), -1.0, 1.0))
+    adjacent = ok & (steps == 1)
+    if adjacent.sum() < 10:
+        return empty
+    step_angle = float(np.median(angle[adjacent]))
+    per_step = angle / np.maximum(steps, 1)
+    gap = ok & (steps >= 2) & (steps <= ev.max_missed_pulses + 1)
+    gap &= (per_step >= 0.4 * step_angle) & (per_step <= 1.6 * step_angle)
+    idx = np.flatnonzero(gap)
+    if len(idx) == 0:
+        return empty
+    n_missing = steps[idx] - 1
+    rep = np.repeat(idx, n_missing)
+    k = np.arange(len(rep)) - np.repeat(np.cumsum(n_missing) - n_missing, n_missing) + 1
+    f = (k / np.repeat(steps[idx], n_missing))[:, None]
+    dirs = (1.0 - f) * ua[rep] + f * ub[rep]
+    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-9)
+    origin = sens[rep]
+    valid = (origin[:, 2] > 0) & (dirs[:, 2] < -1e-9)
+    lam = np.where(valid, -origin[:, 2] / np.where(valid, dirs[:, 2], -1.0), np.inf)
+    cos_inc = np.abs(dirs[:, 2])
+    valid &= (lam <= max_range) & (cos_inc >= np.cos(np.radians(ev.missed_max_incidence_deg)))
+    s = origin[valid, 0] + lam[valid] * dirs[valid, 0]
+    t = origin[valid, 1] + lam[valid] * dirs[valid, 1]
+    return s, t, cos_inc[valid]
+
+
+def _count(s: np.ndarray, t: np.ndarray, shape: tuple[int, int], s0: float, t0: float, cell: float,
+           weights: np.ndarray | None = None) -> np.ndarray:
+    row, col = cell_index(s, t, cell, s0, t0, shape)
+    inside = row >= 0
+    flat = row[inside] * shape[1] + col[inside]
+    w = None if weights is None else weights[inside]
+    return np.bincount(flat, weights=w, minlength=shape[0] * shape[1]).reshape(shape)
+
+
+def cell_evidence(wall_sdt: np.ndarray, wall_sensors: np.ndarray, behind_sdt: np.ndarray, behind_sensors: np.ndarray,
+                  deep: np.ndarray, missed: tuple[np.ndarray, np.ndarray, np.ndarray], shape: tuple[int, int],
+                  s0: float, t0: float, cell: float) -> CellEvidence:
+    """Count the pulses per cell: ``wall_sdt`` returns on the wall, ``behind_sdt`` returns behind it (``deep``:
+    farther than layer_back, else recessed), each at the crossing of its ray with the plane, and the ``missed``
+    crossings of :func:`missed_pulse_crossings`."""
+    s, t, lam = project_rays(behind_sdt, behind_sensors)
+    ok = np.isfinite(lam)
+    wall_dir = wall_sdt - wall_sensors
+    wall_cos = np.abs(wall_dir[:, 2]) / np.maximum(np.linalg.norm(wall_dir, axis=1), 1e-9)
+    back_dir = behind_sdt - behind_sensors
+    back_cos = np.abs(back_dir[:, 2]) / np.maximum(np.linalg.norm(back_dir, axis=1), 1e-9)
+    wall = _count(wall_sdt[:, 0], wall_sdt[:, 1], shape, s0, t0, cell)
+    recessed = _count(s[ok & ~deep], t[ok & ~deep], shape, s0, t0, cell)
+    through = _count(s[ok & deep], t[ok & deep], shape, s0, t0, cell)
+    ms, mt, mcos = missed
+    missed_n = _count(ms, mt, shape, s0, t0, cell)
+    cos_sum = (_count(wall_sdt[:, 0], wall_sdt[:, 1], shape, s0, t0, cell, np.nan_to_num(wall_cos))
+               + _count(s[ok], t[ok], shape, s0, t0, cell, np.nan_to_num(back_cos[ok]))
+               + _count(ms, mt, shape, s0, t0, cell, mcos))
+    total = wall + recessed + through + missed_n
+    cos_mean = np.where(total > 0, cos_sum / np.maximum(total, 1), 0.0)
+    return CellEvidence(wall=wall, recessed=recessed, through=through, missed=missed_n, cos_incidence=cos_mean)
+
+
+def opening_cells(ev: CellEvidence, params: FacadeParams) -> np.ndarray:
+    """Cells the laser went through: at least ``min_pass_pulses`` pulses passed the plane there and at most
+    ``max_wall_share`` of the cell's pulses returned from the wall; cells with no pulse at all within
+    ``evidence_grow_cells`` of such a cell join it: the scan lines of a far façade are further apart than a cell."""
+    p = params.evidence
+    passed, pulses = ev.passed, ev.pulses
+    hole = (passed >= p.min_pass_pulses) & (ev.wall <= p.max_wall_share * pulses)
+    k = p.evidence_grow_cells
+    if k > 0 and hole.any():  # the edge lies somewhere between the last pulse through and the first on the wall
+        hole |= ndimage.binary_dilation(hole, structure=square(k)) & (pulses == 0)
+    return hole
+
+
+def opaque_cells(ev: CellEvidence, params: FacadeParams) -> np.ndarray:
+    """Cells whose passing pulses mostly came back from a surface just behind the wall (a door leaf, a curtain):
+    at least ``opaque_share`` of them recessed returns."""
+    passed = ev.passed
+    return (passed > 0) & (ev.recessed >= params.evidence.opaque_share * passed)
+
+
+def vote_weights(ev: CellEvidence, occluded: np.ndarray, params: FacadeParams) -> np.ndarray:
+    """How much this campaign's word on each cell counts in the map (1..4): the pulses per cell times the cosine
+    of their incidence, over ``weight_pulses`` pulses per weight step; halved (at least 1) within
+    ``weight_occlusion_cells`` of an occluded cell, where shadows blur what was seen."""
+    p = params.evidence
+    quality = ev.pulses * ev.cos_incidence / max(p.weight_pulses, 1e-9)
+    weight = np.clip(np.floor(quality) + 1, 1, 4).astype(np.int32)
+    if p.weight_occlusion_cells > 0 and occluded.any():
+        near = ndimage.binary_dilation(occluded, structure=square(p.weight_occlusion_cells))
+        weight[near] = np.maximum(1, weight[near] // 2)
+    return weight

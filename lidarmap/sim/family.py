@@ -1,0 +1,38 @@
+"""Scene families of the simulator and the seeds reserved for evaluation (docs/simulator.md).
+
+* ``standard``: the scene the stages were developed on (lidarmap/sim/city.py);
+* ``hard``: randomised on purpose (lidarmap/sim/hard.py), to judge façade extraction on scenes it was not tuned to.
+
+Evaluation seeds (:data:`EVAL_SEEDS`) are reserved for benchmark figures: no development run, test or tuning
+uses them (tests/test_sim.py checks that the test suite does not name them). Development uses :data:`DEV_SEEDS`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from lidarmap.sim.city import City, build_city
+from lidarmap.sim.hard import build_hard_city
+from lidarmap.sim.params import SimParams
+
+FAMILIES = ("standard", "hard")
+EVAL_SEEDS = tuple(range(7001, 7011))
+DEV_SEEDS = (11, 12, 13)
+
+
+def build_family_city(params: SimParams) -> City:
+    """The city of ``params`` in its family."""
+    return build_hard_city(params) if params.family == "hard" else build_city(params)
+
+
+def family_params(family: str, seed: int, **overrides) -> SimParams:
+    """Parameters of one scene of ``family`` (defaults of :class:`SimParams` otherwise)."""
+    return dataclasses.replace(SimParams(family=family, seed=seed), **overrides)
+
+
+def seeds(evaluation: bool, count: int) -> list[int]:
+    """The first ``count`` evaluation seeds (benchmark figures) or development seeds (anything else)."""
+    pool = EVAL_SEEDS if evaluation else DEV_SEEDS
+    if not 1 <= count <= len(pool):
+        raise ValueError(f"count must be in [1, {len(pool)}] for {'evaluation' if evaluation else 'development'} seeds")
+    return list(pool[:count])
