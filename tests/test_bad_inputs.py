@@ -577,8 +577,7 @@ OPTIONS: dict[str, Case] = {
     "densify --ratio 0": _options("densify", "LAZ", "-o", "OUT", "--ratio", "0", needles=("ratio",)),
     "voxelize --size -1": _options("voxelize", "LAZ", "-o", "OUT", "--size", "-1", needles=("size",)),
     "voxelize same input twice": _options("voxelize", "LAZ", "LAZ", "-o", "OUT", needles=("tile.laz", "twice")),
-    "map update without --trajectory": _options("map", "update", "MAP", "--points", "MLS", "--footprints", "MFP",
-                                                needles=("--trajectory",)),
+    "map update --aerial and --points": _options(*UPDATE, "--aerial", "LAZ", needles=("--aerial",)),
 }
 for _name, _case in OPTIONS.items():
     CASES[f"option/{_name}"] = _case

@@ -31,7 +31,7 @@ from lidarmap.cli.common import (
 
 #: What a demo writes into its folder (listed in the folder's marker, :mod:`lidarmap.io.outdir`): a later demo
 #: replaces these and nothing else.
-DEMO_OUTPUTS = ("city", "aerial", "city.lmap", "city.lmap.lock", "city.city.json", "renders")
+DEMO_OUTPUTS = ("city", "aerial", "city.lmap", "city.lmap.lock", "city.city.json", "renders", "view.html")
 
 
 def register(app: typer.Typer) -> None:
