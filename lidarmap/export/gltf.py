@@ -200,7 +200,7 @@ def aerial_glb_building(b: AerialBuilding, record: dict[str, Any] | None = None)
     attributes = {**b.attributes, "ground_z": b.ground_z, "height": b.height,
                   "roof_z_max": float(vertices[:, 2].max()) if len(vertices) else None}
     if record:
-        attributes.update({k: v for k, v in record.items() if k in ("status", "coverage", "fingerprint") and v})
+        attributes.update({k: v for k, v in record.items() if k in ("status", "coverage") and v})
     return GlbBuilding(id=str(b.id), parts=parts, attributes=attributes)
 
 
@@ -298,16 +298,23 @@ def _building_attributes(obj: dict[str, Any], epsilons: list[float]) -> dict[str
     return attributes
 
 
+def _finest(geometries: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The geometry of the highest LoD (a map building has LoD 3 with openings and LoD 2 without: one is drawn)."""
+    if not geometries:
+        return []
+    return [max(geometries, key=lambda g: float(g.get("lod", 0)))]
+
+
 def map_glb_buildings(doc: dict[str, Any]) -> list[GlbBuilding]:
     """The buildings of a map's CityJSON document (:func:`lidarmap.export.cityjson.map_to_cityjson`) as glb
-    buildings: semantic surfaces triangulated by kind, windows/doors coloured by ε, unknown regions in front of
-    their wall."""
+    buildings: the finest LoD's semantic surfaces triangulated by kind, windows/doors coloured by ε, unknown
+    regions in front of their wall."""
     transform = doc.get("transform", {"scale": [1, 1, 1], "translate": [0, 0, 0]})
     xyz = np.asarray(doc["vertices"], dtype=np.float64).reshape(-1, 3) * transform["scale"] + transform["translate"]
     buildings = []
     for oid, obj in doc["CityObjects"].items():
         acc, epsilons = _Accumulator(), []
-        for geometry in obj.get("geometry", []):
+        for geometry in _finest(obj.get("geometry", [])):
             semantics = (geometry.get("semantics") or {}).get("surfaces", [])
             plain = "ground" if str(geometry.get("lod")) == "0" else "wall"  # a footprint, or a surface of no type
             for surface, value in _surfaces(geometry):
