@@ -131,9 +131,12 @@ def test_run_writes_a_geopackage_of_every_footprint(city: Path, first_run) -> No
     assert all(shapely.from_wkb(w).equals(p) for w, p in zip(wkb, footprints.polygons))
     summary = json.loads((out / "summary.json").read_text())
     dropped = summary["dropped_footprints"]
-    assert row["status"] == ["dropped" if i in dropped else "ok" for i in row["id"]]
-    assert row["reason"] == [dropped.get(i) for i in row["id"]]
     records = {r["id"]: r for r in summary["records"]}
+    assert row["status"] == [records[i]["status"] if i in records else "dropped" for i in row["id"]]
+    assert set(row["status"]) >= {"complete", "dropped"}  # the simulated buildings are wholly scanned
+    assert row["reason"] == [dropped.get(i) for i in row["id"]]
+    assert [c if c == c else None for c in row["coverage"]] == [records[i]["coverage"] if i in records else None
+                                                                 for i in row["id"]]  # NaN: NULL, dropped
     for k, building_id in enumerate(row["id"]):
         if building_id in records:
             points = read_las(out / "buildings" / building_id / "points.laz")
