@@ -30,6 +30,7 @@ from lidarmap.core import PointCloud
 from lidarmap.export.validate import validate_cityjson
 from lidarmap.io.footprints import read_footprints
 from lidarmap.io.las import read_las, write_las
+from lidarmap.io.meshfile import read_ply_crs
 from lidarmap.io.voxels import read_voxels
 from lidarmap.sim import SimParams, load_truth, simulate
 
@@ -279,7 +280,9 @@ def test_building_voxels_use_the_true_majority() -> None:
 
 
 def test_stage_commands_chain_on_a_file(tmp_path: Path) -> None:
-    write_las(tmp_path / "b.laz", _roof_and_ground())
+    cloud = _roof_and_ground()
+    cloud.crs = CRS.from_epsg(28992)
+    write_las(tmp_path / "b.laz", cloud)
     steps = [("densify", "d"), ("flatten", "f")]
     src = tmp_path / "b.laz"
     for command, folder in steps:
@@ -294,6 +297,8 @@ def test_stage_commands_chain_on_a_file(tmp_path: Path) -> None:
     mesh = trimesh.load(tmp_path / "m" / "b.surface.ply", process=False)
     assert mesh.is_watertight and abs(mesh.bounds[1, 2] - 50.0) < 0.2
     assert (tmp_path / "m" / "b.voxels.obj").exists()
+    assert read_ply_crs(tmp_path / "m" / "b.surface.ply").to_epsg() == 28992  # the input's CRS, kept
+    assert CRS.from_user_input((tmp_path / "m" / "b.voxels.prj").read_text()).to_epsg() == 28992
 
 
 def test_stage_command_without_building_points_is_one_line(tmp_path: Path) -> None:
