@@ -8,6 +8,7 @@ below, per document).
 from __future__ import annotations
 
 import ast
+import dataclasses
 import json
 import os
 import re
@@ -19,8 +20,8 @@ import pytest
 from conftest import run_cli_in_process as run
 from conftest import shared_file
 
-from lidarmap.cli.config_cmd import defaults_toml, param_classes
-from lidarmap.config import resolve
+from lidarmap.cli.config_cmd import defaults_toml, param_classes, table_toml
+from lidarmap.config import KNOWN_TABLES, resolve
 from lidarmap.core import PointCloud
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -93,10 +94,28 @@ def test_config_defaults_load_back_to_the_default_parameters() -> None:
     assert code == 0, err
     doc = tomllib.loads(out)
     classes = param_classes()
-    assert sorted(doc) == sorted(classes) and len(classes) >= 13
+    assert sorted(doc) == sorted(classes)
+    assert set(classes) == KNOWN_TABLES - {"baseline"}  # every table a config file may hold ("baseline": old name)
     for table, cls in classes.items():
         assert resolve(cls, doc, table) == cls(), table  # every key, nested groups included, round trips
-    assert "[facade.planes]" in out and "# model = (none: not set)" in out
+    assert "[facade.planes]" in out
+
+
+def test_a_parameter_without_default_value_is_a_comment() -> None:
+    @dataclasses.dataclass(frozen=True)
+    class Example:
+        """Example.
+
+        size (2.5): edge length.
+        model (None): a file; none = the shipped one
+        """
+
+        size: float = 2.5
+        names: tuple[str, ...] = ("a", "b")
+        model: str | None = None
+
+    assert table_toml(Example(), "example") == ["[example]", "size = 2.5  # edge length.", 'names = ["a", "b"]',
+                                                "# model = (none: not set)  # a file; none = the shipped one …"]
 
 
 def test_config_defaults_of_one_table_and_an_unknown_table() -> None:

@@ -30,6 +30,7 @@ from lidarmap.core import PointCloud
 from lidarmap.export.validate import validate_cityjson
 from lidarmap.io.footprints import read_footprints
 from lidarmap.io.las import read_las, write_las
+from lidarmap.io.meshfile import read_ply_crs
 from lidarmap.io.voxels import read_voxels
 from lidarmap.sim import SimParams, load_truth, simulate
 
@@ -131,9 +132,12 @@ def test_run_writes_a_geopackage_of_every_footprint(city: Path, first_run) -> No
     assert all(shapely.from_wkb(w).equals(p) for w, p in zip(wkb, footprints.polygons))
     summary = json.loads((out / "summary.json").read_text())
     dropped = summary["dropped_footprints"]
-    assert row["status"] == ["dropped" if i in dropped else "ok" for i in row["id"]]
-    assert row["reason"] == [dropped.get(i) for i in row["id"]]
     records = {r["id"]: r for r in summary["records"]}
+    assert row["status"] == [records[i]["status"] if i in records else "dropped" for i in row["id"]]
+    assert set(row["status"]) >= {"complete", "dropped"}  # the simulated buildings are wholly scanned
+    assert row["reason"] == [dropped.get(i) for i in row["id"]]
+    assert [c if c == c else None for c in row["coverage"]] == [records[i]["coverage"] if i in records else None
+                                                                 for i in row["id"]]  # NaN: NULL, dropped
     for k, building_id in enumerate(row["id"]):
         if building_id in records:
             points = read_las(out / "buildings" / building_id / "points.laz")
@@ -276,7 +280,9 @@ def test_building_voxels_use_the_true_majority() -> None:
 
 
 def test_stage_commands_chain_on_a_file(tmp_path: Path) -> None:
-    write_las(tmp_path / "b.laz", _roof_and_ground())
+    cloud = _roof_and_ground()
+    cloud.crs = CRS.from_epsg(28992)
+    write_las(tmp_path / "b.laz", cloud)
     steps = [("densify", "d"), ("flatten", "f")]
     src = tmp_path / "b.laz"
     for command, folder in steps:
@@ -291,6 +297,8 @@ def test_stage_commands_chain_on_a_file(tmp_path: Path) -> None:
     mesh = trimesh.load(tmp_path / "m" / "b.surface.ply", process=False)
     assert mesh.is_watertight and abs(mesh.bounds[1, 2] - 50.0) < 0.2
     assert (tmp_path / "m" / "b.voxels.obj").exists()
+    assert read_ply_crs(tmp_path / "m" / "b.surface.ply").to_epsg() == 28992  # the input's CRS, kept
+    assert CRS.from_user_input((tmp_path / "m" / "b.voxels.prj").read_text()).to_epsg() == 28992
 
 
 def test_stage_command_without_building_points_is_one_line(tmp_path: Path) -> None:

@@ -1,8 +1,8 @@
 """``OUT/buildings.gpkg``: one row per input footprint with what the run made of it, so a GIS opens the result.
 
-Columns: ``id``; ``status`` ("ok", or the building record's own status such as "partial"; "failed" when its task
-failed; "dropped" when prep left it out); ``reason`` (why it failed or was dropped, else NULL); ``coverage`` (share of
-the footprint the points cover, when the run measured it, else NULL); ``ground_z``, ``height`` (prep's), ``z_min``,
+Columns: ``id``; ``status`` (the building record's: "complete" or "partial" (coverage); "ok" for a record without
+one; "failed" when its task failed; "dropped" when prep left it out); ``reason`` (why it failed or was dropped, else
+NULL); ``coverage`` (share of the footprint the points cover, from the record; NULL when absent); ``ground_z``, ``height`` (prep's), ``z_min``,
 ``z_max`` (of the building's output points); ``points``, ``points_inside``, ``building_points``, ``output_points``.
 The footprints are in the run's CRS, which the layer declares.
 """

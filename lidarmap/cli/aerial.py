@@ -276,8 +276,9 @@ def mesh_command(
         meshes = _meshes_of(path, kinds, params, size or 0.5, fps, crs)
         for kind, mesh in meshes.items():
             name = prefix.name if len(meshes) == 1 else f"{prefix.name}.{kind}"
-            write_mesh(prefix.with_name(f"{name}.ply"), mesh)
-            write_mesh(prefix.with_name(f"{name}.obj"), mesh)
+            crs_of = mesh.metadata.get("crs")  # the input's: the PLY header and a .prj sidecar name it
+            write_mesh(prefix.with_name(f"{name}.ply"), mesh, crs_of)
+            write_mesh(prefix.with_name(f"{name}.obj"), mesh, crs_of)
         return [[path.name, kind, len(m.faces), "yes" if m.is_watertight else "no"] for kind, m in meshes.items()]
 
     rows = [row for rows in _each(inputs, "meshing", work, out_dir, "mesh") for row in rows]
@@ -296,7 +297,8 @@ def _meshes_of(path: Path, kinds: list[str], params: Any, size: float, fps: Any,
     if path.name.endswith(".npz"):
         if kinds != ["voxels"]:
             raise ConfigError("a voxel file gives only a voxel mesh: use --method voxels", path)
-        return {"voxels": voxel_mesh(read_voxels(path), params)}
+        grid = read_voxels(path)
+        return _with_crs({"voxels": voxel_mesh(grid, params)}, grid.crs)
     cloud = _read_building_points(path, crs)
     building = building_mask(cloud)
     xyz = cloud.xyz[building]
@@ -312,7 +314,14 @@ def _meshes_of(path: Path, kinds: list[str], params: Any, size: float, fps: Any,
     if "voxels" in kinds:
         grid = voxelize(xyz, None, rgb, dataclasses.replace(VoxelParams(), size=size), crs=cloud.crs)
         out["voxels"] = voxel_mesh(grid, params)
-    return out
+    return _with_crs(out, cloud.crs)
+
+
+def _with_crs(meshes: dict[str, Any], crs: Any) -> dict[str, Any]:
+    """Meshes with their CRS in ``metadata["crs"]`` (None when unknown)."""
+    for mesh in meshes.values():
+        mesh.metadata["crs"] = crs
+    return meshes
 
 
 def _footprint_of(xyz: Any, fps: Any, path: Path) -> Any:

@@ -34,6 +34,8 @@ PARAM_CLASSES = (
     "lidarmap.aerial.coverage:CoverageParams",
     "lidarmap.export.planar:PlanarParams",
     "lidarmap.facade.params:FacadeParams",
+    "lidarmap.facade.sensors:SensorParams",
+    "lidarmap.facade.discover:DiscoverParams",
     "lidarmap.map.refine:RefineParams",
     "lidarmap.map.update:UpdateParams",
     "lidarmap.sim.params:SimParams",

@@ -65,7 +65,9 @@ def main() -> None:
     click_exc = _click_exceptions()
 
     try:
-        code = app(standalone_mode=False)  # returns the exit code of a typer.Exit raised inside a command
+        # prog_name: usage lines and the completion variable (_LIDARMAP_COMPLETE) say "lidarmap" however it was
+        # started (python -m lidarmap, or inside another program such as pytest)
+        code = app(standalone_mode=False, prog_name="lidarmap")  # the exit code of a typer.Exit inside a command
     except getattr(click_exc, "NoArgsIsHelpError", _Never) as exc:
         typer.echo(exc.ctx.get_help() if exc.ctx else "see 'lidarmap --help'")
         sys.exit(0)
