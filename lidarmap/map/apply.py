@@ -190,7 +190,8 @@ def _new_map(stored: BuildingMap, points: _Points, footprints: Footprints, input
     with tempfile.TemporaryDirectory(dir=map_path.resolve().parent, prefix=_spool_prefix(map_path)) as spool:
         fused = fuse_campaign(stored, points.stream, points.mobile.trajectory, footprints, facade_params,
                               refine_params, campaign_id, seed, update=update, spool_dir=Path(spool) / "points",
-                              progress=progress, noise_factor=points.mobile.noise_factor)
+                              progress=progress, noise_factor=points.mobile.noise_factor,
+                              pulse_times=points.mobile.pulse_times)
     return _Fused(fused.map, fused.failed)
 
 
