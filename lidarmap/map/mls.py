@@ -161,6 +161,8 @@ def mobile_campaign(points: Path, trajectory: Path | None, crs: Any, columns: st
     if sample["gps_time"] is not None:
         track = timed_path(path, sample["gps_time"], sample["xyz"][:, :2], params, str(points))
         return MobileCampaign(source(), track, MODES[2], params.noise_factor)
+    log.warning("%s: no trajectory, origins or GPS time: every point's sensor is taken across the track from it "
+                "(a yawed or crossed profiler breaks this; docs/mls.md)", points)
     return MobileCampaign(source(lambda first, chunk: path_times(path, chunk.xyz[:, :2])),
                           path_trajectory(path, str(points)), MODES[3], params.noise_factor, pulse_times=False)
 
