@@ -31,14 +31,19 @@ from lidarmap.io.crs import horizontal_crs, same_crs
 from lidarmap.io.footprints import check_overlap, read_footprints
 from lidarmap.io.points import read_points
 from lidarmap.map import refine
-from lidarmap.map.model import BuildingMap, Campaign
-from lidarmap.map.store import MapStore, campaign_fingerprint, damaged_map_error, writer_lock
 from lidarmap.map.mls import (
     DERIVED,
     discover_campaign,
     join_given_footprints,
     merge_discovered,
     mobile_campaign,
+)
+from lidarmap.map.model import BuildingMap, Campaign
+from lidarmap.map.store import (
+    MapStore,
+    campaign_fingerprint,
+    damaged_map_error,
+    writer_lock,
 )
 from lidarmap.map.update import UpdateParams, fuse_campaign
 
