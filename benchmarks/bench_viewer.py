@@ -122,6 +122,8 @@ def main() -> None:
     for k, r in enumerate(browser["runs"], 1):
         print(f"| {k} | {r.timings['drawn'] / 1000:.2f} | {r.ready_seconds:.2f} | {r.count_shown} | "
               f"{'ok' if r.picked == records[0]['id'] else r.picked} |")
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    print(f"\nLoad average at the end (1, 5, 15 min): {load} on {os.cpu_count()} cores.")
     print("\nTargets: glb < 2 s, within 1 mm of the PLY meshes; the page draws in < 5 s.")
 
 

@@ -22,8 +22,14 @@ import time
 from pathlib import Path
 
 import numpy as np
+from shapely.geometry import box
 
-from lidarmap.facade.eval import evaluate_facades, match_facade
+from lidarmap.facade.eval import (
+    evaluate_facades,
+    match_facade,
+    polygon_iou,
+    union_visibility,
+)
 from lidarmap.facade.model import ElementKind
 from lidarmap.facade.params import FacadeParams
 from lidarmap.io.footprints import read_footprints
@@ -49,6 +55,7 @@ class MapScore:
     window: dict
     false_blank: int
     blank_area: float
+    by_glazing: dict = dataclasses.field(default_factory=dict)  # see recall_by_glazing
 
     @property
     def f1(self) -> float:
@@ -82,12 +89,39 @@ def blank_wall_false_openings(buildings: list, truth, campaigns: list[int]) -> t
     return false, area
 
 
+def recall_by_glazing(buildings: list, truth, campaigns: list[int], min_visible: float = 0.9) -> dict:
+    """Truth windows/doors seen by ``campaigns`` by glazing (hard family; else subtype): [found with their kind,
+    found as another kind (window as door, structure, ...), total], at IoU >= 0.5 in file coordinates."""
+    visible = union_visibility(truth, campaigns)
+    raw = {el["id"]: el for b in truth.doc["buildings"] for f in b["facades"] for el in f["elements"]}
+    by_building = {str(b.building_id): b for b in buildings}
+    out: dict[str, list[int]] = {}
+    for tb in truth.buildings:
+        rects: dict[int, list] = {}
+        for f in getattr(by_building.get(str(tb.id)), "facades", []):
+            tf = match_facade(f, tb.facades)
+            for e in f.elements if tf is not None else []:
+                st = tf.to_facade(f.frame.polygon_to_crs(e.polygon))[:, :2]
+                rects.setdefault(tf.id, []).append((e.kind.value, box(*st.min(axis=0), *st.max(axis=0))))
+        for tf in tb.facades:
+            for e in tf.elements:
+                if e.kind not in ("window", "door") or visible.get(e.id, 0.0) < min_visible:
+                    continue
+                key = f"{e.kind} {raw[e.id].get('glazing') or e.subtype}"
+                best = max(((polygon_iou(r, e.polygon), k) for k, r in rects.get(tf.id, [])), default=(0.0, ""))
+                row = out.setdefault(key, [0, 0, 0])
+                row[2] += 1
+                if best[0] >= 0.5:
+                    row[0 if best[1] == e.kind else 1] += 1
+    return out
+
+
 def score_map(buildings: list, truth, campaigns: list[int]) -> MapScore:
     ev = evaluate_facades(buildings, truth, campaigns[-1], campaigns=campaigns)
     w, d = ev["window"], ev["door"]
     false, area = blank_wall_false_openings(buildings, truth, campaigns)
     return MapScore(tp=w["tp"] + d["tp"], fp=w["fp"] + d["fp"], fn=w["fn"] + d["fn"], door=d, window=w,
-                    false_blank=false, blank_area=area)
+                    false_blank=false, blank_area=area, by_glazing=recall_by_glazing(buildings, truth, campaigns))
 
 
 @dataclasses.dataclass
@@ -159,7 +193,10 @@ def _pooled(scores: list[MapScore]) -> MapScore:
 
 
 def _rate(s: MapScore) -> str:
-    return f"{s.false_per_unit:.1f}" if s.blank_area > 0 else "–"
+    """False openings per 500 m² of seen blank wall, and the count behind it ("∞" when none of it was seen)."""
+    if s.blank_area > 0:
+        return f"{s.false_per_unit:.1f} ({s.false_blank})"
+    return f"∞ ({s.false_blank})" if s.false_blank else "– (0)"
 
 
 def _door_f1(s: MapScore) -> float:
@@ -175,18 +212,19 @@ def markdown(runs: list[SceneRun], evaluation: bool, title: str = "Standard scen
              "scored against truth openings at least 90 % seen by the campaigns so far (hard family: seen = "
              "line of sight at <= 80° incidence with expected samples <= 0.3 m apart). W+D F1: windows and doors "
              "pooled (IoU >= 0.5, same type). False/500 m²: windows and doors on façades without any opening, per "
-             "500 m² of their seen area. Figures in benchmarks/facade_scores.py.\n"),
+             "500 m² of their seen area (∞: openings on blank walls of which no cell counts as seen). Figures in benchmarks/facade_scores.py.\n"),
              ("| family | seed | points per campaign | W+D F1 after 1 | W+D F1 after last | door F1 after 1 / last | "
-             "window tp/fp/fn after last | door tp/fp/fn after last | false/500 m² after 1 / last (blank m²) | "
+             "window tp/fp/fn after last | door tp/fp/fn after last | false/500 m² (count) after 1 / last | "
+              "seen blank m² after 1 / last | "
              "update s |"),
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in runs:
         first, last = r.scores[0], r.scores[-1]
         w, d = last.window, last.door
         lines.append(f"| {r.family} | {r.seed} | {' / '.join(f'{n / 1e6:.2f} M' for n in r.points)} | "
                      f"{first.f1:.3f} | {last.f1:.3f} | {_door_f1(first):.3f} / {_door_f1(last):.3f} | "
                      f"{w['tp']}/{w['fp']}/{w['fn']} | {d['tp']}/{d['fp']}/{d['fn']} | "
-                     f"{_rate(first)} / {_rate(last)} ({last.blank_area:.0f}) | "
+                     f"{_rate(first)} / {_rate(last)} | {first.blank_area:.0f} / {last.blank_area:.0f} | "
                      f"{' / '.join(f'{s:.0f}' for s in r.seconds)} |")
     for family in dict.fromkeys(r.family for r in runs):
         mine = [r for r in runs if r.family == family]
@@ -194,7 +232,8 @@ def markdown(runs: list[SceneRun], evaluation: bool, title: str = "Standard scen
         after = [_pooled([r.scores[k] for r in mine]) for k in range(n)]
         lines.append(f"| **{family}, all seeds** | | | **{after[0].f1:.3f}** | **{after[-1].f1:.3f}** | "
                      f"**{_door_f1(after[0]):.3f} / {_door_f1(after[-1]):.3f}** | | | "
-                     f"**{_rate(after[0])} / {_rate(after[-1])}** | |")
+                     f"**{_rate(after[0])} / {_rate(after[-1])}** | {after[0].blank_area:.0f} / "
+                     f"{after[-1].blank_area:.0f} | |")
     hard = [r for r in runs if r.family == "hard"]
     if hard:
         lines.append("\nHard-family campaigns: " + "; ".join(
@@ -202,6 +241,15 @@ def markdown(runs: list[SceneRun], evaluation: bool, title: str = "Standard scen
         series = [_pooled([r.scores[k] for r in hard]).f1 for k in range(min(len(r.scores) for r in hard))]
         lines.append("Hard family W+D F1 after each campaign (all seeds pooled): "
                      + " → ".join(f"{x:.3f}" for x in series) + ".")
+        lines.append("Hard-family truth openings by glazing / door style, after the first and the last campaign "
+                     "(all seeds pooled; found with their type / found as another kind / seen):")
+        for k in (0, -1):
+            pooled: dict[str, list[int]] = {}
+            for r in hard:
+                for key, row in r.scores[k].by_glazing.items():
+                    pooled[key] = [a + b for a, b in zip(pooled.get(key, [0, 0, 0]), row)]
+            lines.append(f"after {'1' if k == 0 else 'last'}: " + ", ".join(
+                f"{key} {a}/{b}/{c}" for key, (a, b, c) in sorted(pooled.items())) + ".")
     return "\n".join(lines) + "\n"
 
 

@@ -49,9 +49,11 @@ class PageResult:
 
 
 def open_viewer(page_path: str | Path, screenshot: str | Path | None = None, pick: str | None = None,
-                size: tuple[int, int] = (1200, 800), timeout_s: float = 60.0) -> PageResult:
+                size: tuple[int, int] = (1200, 800), timeout_s: float = 60.0, hide: tuple[str, ...] = (),
+                hidden_screenshot: str | Path | None = None) -> PageResult:
     """Open a viewer page from file:// in headless Chromium, wait for its scene, optionally click on building
-    ``pick`` (at a pixel the page says hits it) and save a PNG screenshot. Raises RuntimeError without a browser."""
+    ``pick`` (at a pixel the page says hits it) and save a PNG screenshot; then untick the ``hide`` toggles
+    ("roofs", "walls", "openings", "unknown") and save ``hidden_screenshot``. RuntimeError without a browser."""
     from playwright.sync_api import sync_playwright
 
     chromium = find_chromium()
@@ -76,6 +78,10 @@ def open_viewer(page_path: str | Path, screenshot: str | Path | None = None, pic
             count = page.inner_text("#building-count")
             if screenshot is not None:
                 page.screenshot(path=str(screenshot))
+            for name in hide:
+                page.uncheck(f"#toggle-{name}")
+            if hidden_screenshot is not None:
+                page.screenshot(path=str(hidden_screenshot))
             return PageResult(ready, count, picked, error, console, timings)
         finally:
             browser.close()

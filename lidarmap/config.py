@@ -233,7 +233,8 @@ def resolve(params_cls: type[P], config: dict[str, Any] | None = None, section: 
 #: of the others, but a table no command knows (a typo: ``[prepp]``) is an error. A new parameter class adds its
 #: ``section`` here.
 KNOWN_TABLES = frozenset({"prep", "run", "segment", "segment_train", "segment_baseline", "baseline", "densify",
-                          "flatten", "voxel", "mesh", "coverage", "lod22", "facade", "refine", "update", "simulate"})
+                          "flatten", "voxel", "mesh", "coverage", "lod22", "facade", "discover", "sensors", "refine",
+                          "update", "simulate"})
 
 
 def check_sections(config: dict[str, Any], known: set[str] | frozenset[str] = KNOWN_TABLES,

@@ -46,10 +46,12 @@ def main(argv: list[str] | None = None) -> None:
                         "$LIDARMAP_DATA, else ../shared/data from the working directory)")
     parser.add_argument("--config", type=Path, default=None, help="TOML overrides (experiments only)")
     parser.add_argument("--only", choices=("pointnet2", "baseline"), default=None, help="train one model only")
+    parser.add_argument("--vegetation-labels", action="store_true", help="label the tree-like points of the training "
+                        "parts high vegetation (not-building); experiments only, the shipped models use none")
     args = parser.parse_args(argv)
 
     config = load_toml(args.config)
-    data = recipe.load(args.data)
+    data = recipe.load(args.data, vegetation_labels=args.vegetation_labels)
     log(f"training clouds: {', '.join(f'{n} ({len(c):,} pts)' for n, c in data.train)}")
     log(f"held out (never read by training): {', '.join(n for n, _ in data.held_out)}")
     args.out_dir.mkdir(parents=True, exist_ok=True)

@@ -577,8 +577,7 @@ OPTIONS: dict[str, Case] = {
     "densify --ratio 0": _options("densify", "LAZ", "-o", "OUT", "--ratio", "0", needles=("ratio",)),
     "voxelize --size -1": _options("voxelize", "LAZ", "-o", "OUT", "--size", "-1", needles=("size",)),
     "voxelize same input twice": _options("voxelize", "LAZ", "LAZ", "-o", "OUT", needles=("tile.laz", "twice")),
-    "map update without --trajectory": _options("map", "update", "MAP", "--points", "MLS", "--footprints", "MFP",
-                                                needles=("--trajectory",)),
+    "map update --aerial and --points": _options(*UPDATE, "--aerial", "LAZ", needles=("--aerial",)),
 }
 for _name, _case in OPTIONS.items():
     CASES[f"option/{_name}"] = _case
@@ -748,3 +747,19 @@ def test_update_removes_stale_spools_and_warns_of_trajectory_holes(world: dict[s
     warnings = [r.getMessage() for r in caplog.records if r.name == "lidarmap.io.trajectory"]
     assert len(warnings) == 1 and "hole3.csv" in warnings[0] and "3.0 s hole" in warnings[0], warnings
     assert "\n" not in warnings[0]
+
+
+def test_a_later_demo_clears_only_what_the_earlier_one_wrote(tmp_path: Path) -> None:
+    """The demo's folder handling (lidarmap.cli.demo._prepare), without the minutes of a whole demo."""
+    from lidarmap.cli.demo import DEMO_OUTPUTS, _prepare
+
+    out = tmp_path / "demo"
+    _prepare(out)
+    assert read_marker(out)["kind"] == "demo" and set(read_marker(out)["written"]) == set(DEMO_OUTPUTS)
+    (out / "city").mkdir()
+    (out / "city" / "als.laz").write_bytes(b"old")
+    (out / "renders").mkdir()
+    (out / "notes.txt").write_text("mine\n")
+    (out / "mine").mkdir()
+    _prepare(out)
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "mine", "notes.txt"]

@@ -146,10 +146,16 @@ def test_second_run_resumes_and_a_changed_parameter_recomputes(city: Path, first
     out = tmp_path / "resumed"
     shutil.copytree(first_run[0], out)
     before = {n: (out / "buildings" / "1" / n).read_bytes() for n in DATA_FILES}
-    again = run_cli("run", str(city / "als.laz"), "-f", str(city / "footprints.geojson"), "-o", str(out))
+    again = run_cli("run", str(city / "als.laz"), "-f", str(city / "footprints.geojson"), "-o", str(out), "--json")
     assert again.returncode == 0, again.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["processed"] == [] and len(summary["skipped_finished"]) == 2
+    doc = json.loads(again.stdout)  # --json: nothing but one object on stdout
+    assert doc["processed"] == [] and doc["skipped"] == summary["skipped_finished"]
+    assert doc["dropped"] == summary["dropped_footprints"] and doc["failed"] == {}
+    assert doc["outputs"]["geopackage"] == str(out / "buildings.gpkg") and (out / "buildings.gpkg").is_file()
+    records = {r["id"]: r for r in summary["records"]}
+    assert all(b["output_points"] == records[b["id"]]["output_points"] for b in doc["buildings"])
     assert all((out / "buildings" / "1" / n).read_bytes() == before[n] for n in DATA_FILES)
     config = tmp_path / "c.toml"
     config.write_text("[voxel]\nsize = 0.5\n")
@@ -158,20 +164,6 @@ def test_second_run_resumes_and_a_changed_parameter_recomputes(city: Path, first
     assert third.returncode == 0, third.stderr
     assert len(json.loads((out / "summary.json").read_text())["processed"]) == 2
     assert read_voxels(out / "buildings" / "1" / "voxels.npz").size == 0.5
-
-
-def test_run_json_is_one_object_on_stdout(city: Path, first_run, tmp_path: Path) -> None:
-    out = tmp_path / "resumed"
-    shutil.copytree(first_run[0], out)
-    again = run_cli("run", str(city / "als.laz"), "-f", str(city / "footprints.geojson"), "-o", str(out), "--json")
-    assert again.returncode == 0, again.stderr
-    doc = json.loads(again.stdout)  # nothing but the object on stdout
-    summary = json.loads((out / "summary.json").read_text())
-    assert doc["processed"] == [] and doc["skipped"] == summary["skipped_finished"] and len(doc["skipped"]) == 2
-    assert doc["dropped"] == summary["dropped_footprints"] and doc["failed"] == {}
-    assert doc["outputs"]["geopackage"] == str(out / "buildings.gpkg") and (out / "buildings.gpkg").is_file()
-    records = {r["id"]: r for r in summary["records"]}
-    assert all(b["output_points"] == records[b["id"]]["output_points"] for b in doc["buildings"])
 
 
 def test_serial_and_distributed_runs_write_the_same_results(city: Path, first_run, tmp_path: Path) -> None:

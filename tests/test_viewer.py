@@ -43,6 +43,10 @@ MM = 1e-3
 UTM = np.array([500123.4567, 5800321.8912, 41.25])
 
 
+#: Building id -> its folder under OUT/buildings (a run makes ids safe for file names; summary.json's "folders").
+STEMS = {"h1": "h1", "h 2/ü": "h_2_ü", "h3": "h3"}
+
+
 def _houses() -> dict[str, trimesh.Trimesh]:
     """Three closed gabled-ish meshes (boxes with a random float64 jitter) at UTM coordinates."""
     rng = np.random.default_rng(5)
@@ -60,14 +64,14 @@ def run_dir(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("run")
     records = []
     for name, mesh in _houses().items():
-        folder = building_dir(out, name)
+        folder = building_dir(out, STEMS[name])
         folder.mkdir(parents=True)
         write_mesh(folder / "mesh.ply", mesh)
         records.append({"id": name, "output_points": 100, "planes": 6})
-    folders = {r["id"]: f"buildings/{r['id']}" for r in records}
+    folders = {r["id"]: f"buildings/{STEMS[r['id']]}" for r in records}
     (out / "summary.json").write_text(json.dumps({"crs": CRS_WKT, "records": records, "folders": folders}),
                                       encoding="utf-8")
-    write_run_glb(out, records, {r["id"]: r["id"] for r in records}, (), CRS_WKT)
+    write_run_glb(out, records, STEMS, (), CRS_WKT)
     return out
 
 
@@ -88,7 +92,7 @@ def test_glb_round_trip_matches_the_ply_meshes_within_a_millimetre(run_dir: Path
     glb = (run_dir / "buildings.glb").read_bytes()
     back = _crs_vertices(glb)
     for name in _houses():
-        ply = trimesh.load(building_dir(run_dir, name) / "mesh.ply", process=False)
+        ply = trimesh.load(building_dir(run_dir, STEMS[name]) / "mesh.ply", process=False)
         parts = np.vstack([v for node, v in back.items() if node.startswith(f"{name}/")])
         # every PLY vertex has a glb vertex within 1 mm and vice versa (the glb splits by kind, so sets compare)
         d_ply = np.min(np.linalg.norm(ply.vertices[:, None] - parts[None], axis=2), axis=1)
@@ -150,7 +154,7 @@ def test_map_glb_surfaces_have_the_cityjson_areas_windows_coloured_by_epsilon_un
     doc = map_to_cityjson(building_map)
     t = doc["transform"]
     xyz = np.asarray(doc["vertices"], np.float64) * t["scale"] + t["translate"]
-    geometry = doc["CityObjects"]["A"]["geometry"][0]
+    geometry = max(doc["CityObjects"]["A"]["geometry"], key=lambda g: float(g["lod"]))  # the glb draws the finest
     semantics = geometry["semantics"]["surfaces"]
     expected: dict[str, float] = {}
     for surface, value in zip(geometry["boundaries"], geometry["semantics"]["values"]):
@@ -222,8 +226,9 @@ def test_cli_map_export_glb_and_view_of_a_map_a_run_and_a_glb(map_file: Path, ru
     older.mkdir()
     (older / "summary.json").write_text((run_dir / "summary.json").read_text(encoding="utf-8"), encoding="utf-8")
     for name in _houses():
-        building_dir(older, name).mkdir(parents=True)
-        (building_dir(older, name) / "mesh.ply").write_bytes((building_dir(run_dir, name) / "mesh.ply").read_bytes())
+        building_dir(older, STEMS[name]).mkdir(parents=True)
+        (building_dir(older, STEMS[name]) / "mesh.ply").write_bytes(
+            (building_dir(run_dir, STEMS[name]) / "mesh.ply").read_bytes())
     code, out, err = run("view", older, "-o", tmp_path / "older.html")
     assert code == 0 and "(3 buildings" in out and not (older / "buildings.glb").exists(), err
 
@@ -266,7 +271,8 @@ def test_page_draws_in_headless_chromium_counts_buildings_and_picks_one(map_glb,
     page = tmp_path / "view.html"
     page.write_text(viewer_page(map_glb, "test map"), encoding="utf-8")
     shot = tmp_path / "view.png"
-    result = open_viewer(page, screenshot=shot, pick="A", size=(900, 600))
+    no_roofs = tmp_path / "no_roofs.png"
+    result = open_viewer(page, screenshot=shot, pick="A", size=(900, 600), hide=("roofs",), hidden_screenshot=no_roofs)
     assert result.error is None, result.console
     assert result.count_shown == str(len(glb_building_ids(map_glb))) == "2"
     assert result.picked == "A"
@@ -277,17 +283,34 @@ def test_page_draws_in_headless_chromium_counts_buildings_and_picks_one(map_glb,
     # the building drew: its wall colour is on screen (not just the background and the selection box)
     wall = np.array([219, 214, 204])
     assert (np.abs(canvas - wall).max(axis=2) < 60).sum() > 500
+    # the roofs toggle: roof-coloured (terracotta: red well above green and blue) pixels before, none after
+    def roof_pixels(png: Path) -> int:
+        r, g, b = np.moveaxis(np.asarray(Image.open(png).convert("RGB"), dtype=np.float64)[:, 330:], 2, 0)
+        return int(((r - g > 40) & (r - b > 50)).sum())
+
+    assert roof_pixels(shot) > 300 and roof_pixels(no_roofs) < 0.05 * roof_pixels(shot)
     print(f"screenshot: {shot}")
 
 
-def test_unknown_shapes_are_triangulated_with_holes() -> None:
+def test_polygons_with_holes_are_triangulated_facing_their_ring_normal() -> None:
     from lidarmap.export.gltf import triangulate_rings
 
     square = shapely.Polygon([(0, 0), (4, 0), (4, 3), (0, 3)], [[(1, 1), (2, 1), (2, 2), (1, 2)]])
     rings = [np.column_stack([np.asarray(r.coords)[:-1], np.full(len(r.coords) - 1, 7.0)])
              for r in [square.exterior, *square.interiors]]
     vertices, faces = triangulate_rings(rings)
-    assert abs(trimesh.Trimesh(vertices, faces, process=False).area - square.area) < 1e-9
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    assert abs(mesh.area - square.area) < 1e-9
+    assert (mesh.face_normals[:, 2] > 0.999).all()  # counter-clockwise from above: every triangle faces up
+    mesh = trimesh.Trimesh(*triangulate_rings([r[::-1] for r in rings]), process=False)
+    assert (mesh.face_normals[:, 2] < -0.999).all()  # and down for the reversed rings
+
+
+def test_a_footprint_id_attribute_does_not_replace_the_building_id() -> None:
+    from lidarmap.export.gltf import GlbBuilding, glb_bytes
+
+    glb = glb_bytes([GlbBuilding("B7", {}, {"id": 12, "height": 3.0})])
+    assert glb_building_ids(glb) == ["B7"]
 
 
 def test_a_run_without_buildings_still_gets_a_glb() -> None:

@@ -34,8 +34,8 @@ class CoverageParams:
         few points at the 8-25 points/m² of national scans; raise it for sparser data).
     min_coverage (0.6): a building whose covered share is below this is partial: modelled over the covered part
         only, status "partial"; 0 = never.
-    margin (1.0): the covered cells are grown by this (m) before cutting the footprint (the outermost points lie up
-        to a cell inside the real edge).
+    margin (0.5): the covered cells are grown by this (m) before cutting the footprint (the outermost points lie up
+        to a point spacing inside the real edge; the cells already reach up to ``cell`` beyond them).
     """
 
     section = "coverage"
@@ -43,7 +43,7 @@ class CoverageParams:
 
     cell: float = 1.0
     min_coverage: float = 0.6
-    margin: float = 1.0
+    margin: float = 0.5
 
     def __post_init__(self) -> None:
         check_params(self)

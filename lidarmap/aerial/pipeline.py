@@ -574,7 +574,7 @@ def _worker_config(config: PipelineConfig) -> PipelineConfig:
 #: Kind of the output-folder marker of a run (:mod:`lidarmap.io.outdir`).
 KIND = "run"
 #: What a run writes into its output folder (listed in the folder's marker).
-RUN_OUTPUTS = ("buildings", "summary.json", "buildings.city.json")
+RUN_OUTPUTS = ("buildings", "summary.json", "buildings.city.json", "buildings.gpkg", "buildings.glb")
 
 
 def check_out_dir(out_dir: str | Path) -> Path:

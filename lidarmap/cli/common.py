@@ -41,6 +41,14 @@ def table_console() -> Console:
     return console if console.is_terminal else Console(width=PIPE_WIDTH)
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is at the time (tests and embedding programs swap it)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.stream = sys.stderr
+        super().emit(record)
+
+
 #: Set by the global options (``--quiet``) for this invocation.
 _state = {"quiet": False}
 
@@ -53,7 +61,7 @@ def configure_logging(verbose: int = 0, quiet: bool = False) -> None:
     logger.setLevel(level)
     for handler in [h for h in logger.handlers if getattr(h, "lidarmap_cli", False)]:
         logger.removeHandler(handler)
-    handler = logging.StreamHandler(sys.stderr)
+    handler = _StderrHandler()
     handler.lidarmap_cli = True  # type: ignore[attr-defined]
     handler.setFormatter(logging.Formatter("%(levelname)s: %(message)s" if verbose < 2
                                            else "%(levelname)s %(name)s: %(message)s"))
@@ -98,7 +106,8 @@ SeedOption = typer.Option(None, "--seed", min=0, help="Random seed (>= 0): the s
 CrsOption = typer.Option(None, "--crs", help="CRS of inputs that carry none, e.g. EPSG:28992.")
 #: Required ``--footprints`` option of the commands that split by building.
 FootprintsOption = typer.Option(..., "--footprints", "-f", dir_okay=False,
-                                help="Building footprints: GeoJSON; GeoPackage, Shapefile or FlatGeobuf with the gis extra.")
+                                help="Building footprints: GeoJSON; GeoPackage, Shapefile or FlatGeobuf with "
+                                     "the gis extra.")
 #: ``--id-field`` option of every command that reads footprints.
 IdFieldOption = typer.Option(None, "--id-field", help="Footprint property holding the building id (default 'id').")
 

@@ -31,7 +31,7 @@ from lidarmap.cli.common import (
 
 #: What a demo writes into its folder (listed in the folder's marker, :mod:`lidarmap.io.outdir`): a later demo
 #: replaces these and nothing else.
-DEMO_OUTPUTS = ("city", "aerial", "city.lmap", "city.lmap.lock", "city.city.json", "renders")
+DEMO_OUTPUTS = ("city", "aerial", "city.lmap", "city.lmap.lock", "city.city.json", "renders", "view.html")
 
 
 def register(app: typer.Typer) -> None:
@@ -205,10 +205,10 @@ def _outputs(out: Path) -> None:
     rows = [
         ("city/", "simulated data: als.laz, mls_<i>.laz, trajectory_<i>.csv, footprints.geojson, truth/"),
         ("aerial/buildings/<id>/", "points.laz, voxels.npz/.vox, mesh.ply/.obj (CRS, double precision)"),
-        ("aerial/buildings.city.json", "CityJSON 2.0: LoD1 blocks + LoD2.2 meshes of the reconstructed buildings"),
+        ("aerial/buildings.city.json", "CityJSON 2.0: LoD1 blocks + LoD2.2 planar faces, footprint coverage"),
         ("aerial/buildings.glb", "glTF 2.0 of the meshes (local origin) for viewers"),
         ("city.lmap", "the façade map (SQLite; try `lidarmap map show` / `map history`)"),
-        ("city.city.json", "CityJSON 2.0 of the map: walls with windows/doors, roofs, uncertainties"),
+        ("city.city.json", "CityJSON 2.0 of the map: LoD 3 walls with windows/doors, LoD 2, roofs, uncertainties"),
         ("view.html", "3D viewer page of the map (self-contained: open it in a browser)"),
         ("renders/", "one PNG per façade: layers, windows (red, with ε), unknown regions (white)"),
     ]

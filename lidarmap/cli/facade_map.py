@@ -104,9 +104,9 @@ def update_command(
                                               "or a path estimated from the cloud.", dir_okay=False),
     aerial: Optional[Path] = typer.Option(None, "--aerial", help="Aerial scan (LAS/LAZ): adds roof planes.",
                                           dir_okay=False),
-    footprints: Optional[Path] = typer.Option(None, "--footprints", "-f", help="Building footprints (GeoJSON); "
-                                              "optional with --aerial (default: the map's buildings).",
-                                              dir_okay=False),
+    footprints: Optional[Path] = typer.Option(None, "--footprints", "-f", help="Building footprints (GeoJSON; "
+                                              "GeoPackage/Shapefile/FlatGeobuf with the gis extra); optional with "
+                                              "--aerial (default: the map's buildings).", dir_okay=False),
     id_field: Optional[str] = IdFieldOption,
     crs: Optional[str] = CrsOption,
     columns: Optional[str] = typer.Option(None, "--columns", help="Columns of a text point file, e.g. "

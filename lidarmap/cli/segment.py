@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 from typing import Any, Optional
 
@@ -269,17 +270,28 @@ def evaluate_command(
 def _print_scores(report: dict[str, Any]) -> None:
     table = Table(title=f"segment evaluate ({report['method']}, labels "
                   f"{'removed' if report['labels_removed'] else 'kept'})", title_justify="left")
-    for column in ("input", "points", "OA", "IoU bldg", "IoU other", "mIoU", "TN FP / FN TP", "tree-like",
-                   "tree-like FP", "added: tree-like"):
+    for column in ("input", "points", "OA", "IoU bldg", "IoU other", "mIoU", "TN FP / FN TP"):
         table.add_column(column, justify="left" if column == "input" else "right")
     rows = list(report["inputs"].items()) + ([("total", report["total"])] if len(report["inputs"]) > 1 else [])
     for name, s in rows:
         table.add_row(Path(name).name if name != "total" else "[bold]total[/]", f"{s['points']:,}",
                       f"{s['overall_accuracy']:.4f}", f"{s['iou']['building']:.4f}",
-                      f"{s['iou']['not-building']:.4f}", f"{s['miou']:.4f}", _confusion(s["confusion"]["matrix"]),
-                      f"{s['trees']['tree_like_points']:,}", f"{s['trees']['tree_like_false_positive_rate']:.4f}",
-                      f"{s['trees']['added_tree_like_share']:.4f}")
+                      f"{s['iou']['not-building']:.4f}", f"{s['miou']:.4f}", _confusion(s["confusion"]["matrix"]))
     console.print(table)
+    trees = Table(title="every point: tree-like points (docs/segmentation.md) called building", title_justify="left")
+    for column in ("input", "tree-like", "called building", "added building", "of which tree-like"):
+        trees.add_column(column, justify="left" if column == "input" else "right")
+    for name, s in rows:
+        t = s["trees"]
+        trees.add_row(Path(name).name if name != "total" else "[bold]total[/]", f"{t['tree_like_points']:,}",
+                      _share(t["tree_like_false_positive_rate"]), f"{t['added_points']:,}",
+                      _share(t["added_tree_like_share"]))
+    console.print(trees)
+
+
+def _share(value: float) -> str:
+    """A share with 4 decimals; '-' when there was nothing to share (nan)."""
+    return "-" if math.isnan(value) else f"{value:.4f}"
 
 
 def _confusion(matrix: list[list[int]]) -> str:

@@ -5,10 +5,12 @@ Mapping (docs/map.md has the full table):
 * ``transform``: scale 0.001 (mm) and a whole-metre translate; vertices are integers, so every exported coordinate
   is within 0.5 mm of the map's float64 value. ``metadata.referenceSystem`` is
   ``https://www.opengis.net/def/crs/EPSG/0/<code>`` when the map's CRS has an EPSG code.
-* A building with façades or roof planes gets one ``MultiSurface`` at ``lod "2"`` with semantic surfaces:
+* A building with façades or roof planes gets a ``MultiSurface`` at ``lod "2"`` (walls without openings or
+  structures, roofs) and, when it has windows, doors or structures, first one at ``lod "3"`` (openings are an LoD 3
+  concept) with semantic surfaces:
 
   - each façade: a ``WallSurface`` (``lidarmap_kind: "facade"``) covering its extent at the main layer's depth,
-    with the window/door openings cut out as holes; attributes: façade id, depth σ of the plane, points,
+    at LoD 3 with the window/door openings cut out as holes; attributes: façade id, depth σ of the plane, points,
     campaigns, footprint edge, frame (origin, u, normal), extent, layers, and the façade's unknown regions;
   - windows and doors: ``Window`` / ``Door`` surfaces whose ``parent`` is that WallSurface (listed in its
     ``children``), at their layer's depth; attributes ``lidarmap_uncertainty`` (ε), ``lidarmap_depth``,
@@ -23,6 +25,10 @@ Mapping (docs/map.md has the full table):
 * A building without façades or roofs: a LoD1 block (``Solid``; ``MultiSurface`` for a multi-part footprint) from
   the footprint extruded by its height attribute (``measuredHeight``/``height``/``h``), from its ground height
   attribute (``ground_z``/``base_z``, else 0); without a height only the footprint at ``lod "0"``.
+
+Every surface is made valid in its plane before its vertices are registered (:mod:`lidarmap.export.geomcheck`):
+no repeated vertex, no self-touching ring (split into two surfaces with the same semantics), no sliver, no unused
+vertex, so tools that triangulate (cjio's OBJ export) accept the file.
 
 Building attributes are the map's (footprint properties; NaN/∞ become null) plus ``lidarmap_*`` counts
 (:func:`lidarmap.export.summary.count_buildings`) and the campaigns that observed it.

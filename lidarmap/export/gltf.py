@@ -34,11 +34,11 @@ import trimesh
 from trimesh.exchange.gltf import export_glb
 
 from lidarmap.export.cityjson import (
-    ROOF_NZ,
     AerialBuilding,
     _json_safe,
     map_to_cityjson,
 )
+from lidarmap.export.planar import ROOF_NZ
 from lidarmap.io.atomic import write_bytes_atomic
 
 __all__ = ["EPSILON_FULL", "KINDS", "ORIGIN_NODE", "ROOT_NODE", "UNKNOWN_OFFSET", "GlbBuilding", "aerial_glb_building",
@@ -136,7 +136,7 @@ def glb_bytes(buildings: Iterable[GlbBuilding], crs_wkt: str = "", title: str = 
                        matrix=trimesh.transformations.translation_matrix(origin))
     for b in buildings:
         scene.graph.update(frame_from=ORIGIN_NODE, frame_to=str(b.id),
-                           metadata=_json_safe({"id": str(b.id), **b.attributes}))
+                           metadata=_json_safe({**b.attributes, "id": str(b.id)}))  # the map id wins
         for kind in KINDS:
             if kind not in b.parts:
                 continue
@@ -147,7 +147,6 @@ def glb_bytes(buildings: Iterable[GlbBuilding], crs_wkt: str = "", title: str = 
                                    np.asarray(faces, np.int64), process=False, validate=False)
             if colours is not None:
                 mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=colours)
-            mesh.metadata = {"lidarmap_kind": kind}
             name = f"{b.id}/{kind}"
             scene.add_geometry(mesh, geom_name=name, node_name=name, parent_node_name=str(b.id))
     asset_extras = {"lidarmap": __version__, "title": title, "origin": [float(x) for x in origin],
@@ -194,12 +193,14 @@ def aerial_glb_building(b: AerialBuilding, record: dict[str, Any] | None = None)
     for k, name in enumerate(("roof", "wall", "ground")):
         sub = faces[kind == k]
         if len(sub):
-            used, inverse = np.unique(sub, return_inverse=True)
-            parts[name] = (vertices[used], inverse.reshape(-1, 3), None)
+            used = np.zeros(len(vertices), dtype=bool)
+            used[sub] = True
+            new_index = np.cumsum(used) - 1  # a linear-time compaction (np.unique sorts)
+            parts[name] = (vertices[used], new_index[sub], None)
     attributes = {**b.attributes, "ground_z": b.ground_z, "height": b.height,
                   "roof_z_max": float(vertices[:, 2].max()) if len(vertices) else None}
     if record:
-        attributes.update({k: v for k, v in record.items() if k in ("status", "coverage", "fingerprint") and v})
+        attributes.update({k: v for k, v in record.items() if k in ("status", "coverage") and v})
     return GlbBuilding(id=str(b.id), parts=parts, attributes=attributes)
 
 
@@ -210,13 +211,17 @@ _SEMANTIC_KIND = {"RoofSurface": "roof", "WallSurface": "wall", "GroundSurface":
                   "Door": "door"}
 
 
-def _plane_axes(ring: np.ndarray) -> np.ndarray:
-    """Two orthonormal in-plane axes (3, 2) of a ring, from its Newell normal."""
+def _newell_normal(ring: np.ndarray) -> np.ndarray:
+    """Unit normal of a ring (counter-clockwise seen from where it points)."""
     nxt = np.roll(ring, -1, axis=0)
     normal = np.array([np.sum((ring[:, 1] - nxt[:, 1]) * (ring[:, 2] + nxt[:, 2])),
                        np.sum((ring[:, 2] - nxt[:, 2]) * (ring[:, 0] + nxt[:, 0])),
                        np.sum((ring[:, 0] - nxt[:, 0]) * (ring[:, 1] + nxt[:, 1]))])
-    normal /= max(np.linalg.norm(normal), 1e-12)
+    return normal / max(np.linalg.norm(normal), 1e-12)
+
+
+def _plane_axes(normal: np.ndarray) -> np.ndarray:
+    """Two orthonormal axes (3, 2) of the plane with this unit normal."""
     helper = np.array([0.0, 0.0, 1.0]) if abs(normal[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
     a = np.cross(helper, normal)
     a /= np.linalg.norm(a)
@@ -225,7 +230,7 @@ def _plane_axes(ring: np.ndarray) -> np.ndarray:
 
 def triangulate_rings(rings: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """A planar 3D polygon with holes (exterior first, rings without the closing vertex) as triangles (earcut in
-    the polygon's plane): vertices (V, 3) and faces (F, 3)."""
+    the polygon's plane, wound like the exterior ring): vertices (V, 3) and faces (F, 3)."""
     import mapbox_earcut
 
     rings = [np.asarray(r, dtype=np.float64) for r in rings if len(r) >= 3]
@@ -233,8 +238,12 @@ def triangulate_rings(rings: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
     vertices = np.vstack(rings)
     ends = np.cumsum([len(r) for r in rings]).astype(np.uint32)
-    flat = (vertices - vertices[0]) @ _plane_axes(rings[0])
+    normal = _newell_normal(rings[0])
+    flat = (vertices - vertices[0]) @ _plane_axes(normal)
     faces = mapbox_earcut.triangulate_float64(flat, ends).astype(np.int64).reshape(-1, 3)
+    tri = vertices[faces]
+    backwards = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]) @ normal < 0
+    faces[backwards] = faces[backwards][:, ::-1]  # wound like the exterior ring: front faces look out
     return vertices, faces
 
 
@@ -289,16 +298,23 @@ def _building_attributes(obj: dict[str, Any], epsilons: list[float]) -> dict[str
     return attributes
 
 
+def _finest(geometries: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The geometry of the highest LoD (a map building has LoD 3 with openings and LoD 2 without: one is drawn)."""
+    if not geometries:
+        return []
+    return [max(geometries, key=lambda g: float(g.get("lod", 0)))]
+
+
 def map_glb_buildings(doc: dict[str, Any]) -> list[GlbBuilding]:
     """The buildings of a map's CityJSON document (:func:`lidarmap.export.cityjson.map_to_cityjson`) as glb
-    buildings: semantic surfaces triangulated by kind, windows/doors coloured by ε, unknown regions in front of
-    their wall."""
+    buildings: the finest LoD's semantic surfaces triangulated by kind, windows/doors coloured by ε, unknown
+    regions in front of their wall."""
     transform = doc.get("transform", {"scale": [1, 1, 1], "translate": [0, 0, 0]})
     xyz = np.asarray(doc["vertices"], dtype=np.float64).reshape(-1, 3) * transform["scale"] + transform["translate"]
     buildings = []
     for oid, obj in doc["CityObjects"].items():
         acc, epsilons = _Accumulator(), []
-        for geometry in obj.get("geometry", []):
+        for geometry in _finest(obj.get("geometry", [])):
             semantics = (geometry.get("semantics") or {}).get("surfaces", [])
             plain = "ground" if str(geometry.get("lod")) == "0" else "wall"  # a footprint, or a surface of no type
             for surface, value in _surfaces(geometry):

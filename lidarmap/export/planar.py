@@ -81,30 +81,31 @@ def face_kind(nz: float) -> str:
     return "RoofSurface" if nz > ROOF_NZ else "GroundSurface" if nz < -ROOF_NZ else "WallSurface"
 
 
-def _neighbours(mesh: trimesh.Trimesh) -> list[np.ndarray]:
-    """Per triangle, the triangles sharing an edge with it."""
+def _neighbours(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
+    """Triangle adjacency (sharing an edge) as CSR arrays: the neighbours of t are ``indices[indptr[t]:indptr[t+1]]``."""
     pairs = mesh.face_adjacency
     both = np.concatenate([pairs, pairs[:, ::-1]])
-    order = np.argsort(both[:, 0], kind="stable")
-    both = both[order]
-    splits = np.searchsorted(both[:, 0], np.arange(len(mesh.faces) + 1))
-    return [both[splits[i]:splits[i + 1], 1] for i in range(len(mesh.faces))]
+    both = both[np.argsort(both[:, 0], kind="stable")]
+    return np.searchsorted(both[:, 0], np.arange(len(mesh.faces) + 1)), both[:, 1]
 
 
 def _region(seed: int, n: np.ndarray, p: np.ndarray, free: np.ndarray, tri: np.ndarray, normals: np.ndarray,
-            neighbours: list[np.ndarray], cos_max: float, distance: float) -> np.ndarray:
-    """The triangles reachable from ``seed`` through free triangles that fit the plane (n, p)."""
-    taken = {seed}
-    stack = [seed]
-    while stack:
-        for t in neighbours[stack.pop()]:
-            if t in taken or not free[t] or normals[t] @ n < cos_max:
-                continue
-            if np.max(np.abs((tri[t] - p) @ n)) > distance:
-                continue
-            taken.add(t)
-            stack.append(t)
-    return np.fromiter(taken, dtype=np.int64)
+            adjacency: tuple[np.ndarray, np.ndarray], cos_max: float, distance: float) -> np.ndarray:
+    """The triangles reachable from ``seed`` through free triangles that fit the plane (n, p); breadth first, one
+    ring of neighbours per numpy step."""
+    indptr, indices = adjacency
+    taken = np.zeros(len(tri), dtype=bool)
+    taken[seed] = True
+    frontier = np.array([seed])
+    while len(frontier):
+        counts = indptr[frontier + 1] - indptr[frontier]
+        offsets = np.repeat(indptr[frontier] - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())
+        cand = np.unique(indices[offsets])
+        cand = cand[~taken[cand] & free[cand]]
+        fits = (normals[cand] @ n >= cos_max) & (np.abs((tri[cand] - p) @ n).max(axis=1) <= distance)
+        frontier = cand[fits]
+        taken[frontier] = True
+    return np.flatnonzero(taken)
 
 
 def _fit(members: np.ndarray, tri: np.ndarray, normals: np.ndarray, areas: np.ndarray
@@ -122,7 +123,7 @@ def _fit(members: np.ndarray, tri: np.ndarray, normals: np.ndarray, areas: np.nd
 GROW_PASSES = 3
 
 
-def _grow(tri: np.ndarray, normals: np.ndarray, areas: np.ndarray, neighbours: list[np.ndarray],
+def _grow(tri: np.ndarray, normals: np.ndarray, areas: np.ndarray, adjacency: tuple[np.ndarray, np.ndarray],
           params: PlanarParams) -> np.ndarray:
     """Face label of every triangle (region growing from the largest unassigned triangle, plane refitted)."""
     label = np.full(len(tri), -1, dtype=np.int64)
@@ -135,10 +136,11 @@ def _grow(tri: np.ndarray, normals: np.ndarray, areas: np.ndarray, neighbours: l
         n, p = normals[seed], tri[seed].mean(axis=0)
         members = np.array([seed])
         for _ in range(GROW_PASSES):
-            grown = _region(seed, n, p, free, tri, normals, neighbours, cos_max, params.distance)
-            if len(grown) == len(members) and len(grown) > 1:
-                break
+            grown = _region(seed, n, p, free, tri, normals, adjacency, cos_max, params.distance)
+            settled = len(grown) == len(members) and len(grown) > 1
             members = grown
+            if settled or len(grown) < 3:  # a few triangles' fit is no better than the seed's
+                break
             n, p = _fit(members, tri, normals, areas)
         label[members] = n_faces
         n_faces += 1
@@ -158,10 +160,14 @@ def _merge_small(label: np.ndarray, tri: np.ndarray, normals: np.ndarray, areas:
     edges = np.concatenate([np.column_stack([a[cross], b[cross]]), np.column_stack([b[cross], a[cross]])])
     target = np.arange(n_faces)
     cos_max = np.cos(np.radians(params.angle))
+    edges = edges[np.argsort(edges[:, 0], kind="stable")]
+    edge_start = np.searchsorted(edges[:, 0], np.arange(n_faces + 1))
+    by_face = np.argsort(label, kind="stable")
+    tri_start = np.searchsorted(label[by_face], np.arange(n_faces + 1))
     for face in np.argsort(face_area, kind="stable"):
         small = face_area[face] < params.min_area
-        others, counts = np.unique(target[edges[edges[:, 0] == face, 1]], return_counts=True)
-        corners = tri[label == face].reshape(-1, 3)
+        others, counts = np.unique(target[edges[edge_start[face]:edge_start[face + 1], 1]], return_counts=True)
+        corners = tri[by_face[tri_start[face]:tri_start[face + 1]]].reshape(-1, 3)
         for other in others[np.argsort(-counts, kind="stable")]:
             if other == target[face]:
                 continue

@@ -106,14 +106,15 @@ def abandon_marked_dir(out_dir: str | Path, created: bool) -> None:
 
 
 def remove_marked(out_dir: str | Path) -> None:
-    """Delete what the marker of ``out_dir`` lists (our earlier outputs) and the marker; anything else stays."""
+    """Delete what the marker of ``out_dir`` lists (our earlier outputs); anything else stays, and so does the
+    marker (listing nothing now: the folder stays ours, for the command that replaces its outputs)."""
     out = Path(out_dir)
     marker = read_marker(out)
     if marker is None:
         return
     for name in marker["written"]:
         _remove(out / name)
-    (out / MARKER).unlink()
+    write_marker(out, marker["kind"], [])
 
 
 def _remove(path: Path) -> None:

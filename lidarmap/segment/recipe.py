@@ -87,11 +87,32 @@ def simulated(seed: int) -> PointCloud:
     return dataclasses.replace(cloud, attrs=attrs)
 
 
-def load(data: str | Path | None = None, simulated_cities: bool = True) -> RecipeData:
+#: Class given to the tree-like points of the training parts by ``load(vegetation_labels=True)``: high vegetation,
+#: a labelled not-building class.
+VEGETATION_LABEL = 5
+
+
+def label_vegetation(cloud: PointCloud) -> PointCloud:
+    """The cloud with its tree-like points (:func:`lidarmap.segment.vegetation.tree_like`, on its own labels)
+    labelled :data:`VEGETATION_LABEL`, so training learns them as not-building (class 1 carries no label). For
+    training parts only: scoring a held-out part against labels the rule made would flatter the model."""
+    from lidarmap.segment.vegetation import tree_like_cloud
+
+    trees = tree_like_cloud(cloud)
+    attrs = dict(cloud.attrs)
+    attrs["classification"] = np.where(trees, VEGETATION_LABEL, cloud.attrs["classification"]).astype(np.uint8)
+    return dataclasses.replace(cloud, attrs=attrs)
+
+
+def load(data: str | Path | None = None, simulated_cities: bool = True,
+         vegetation_labels: bool = False) -> RecipeData:
     """The training and held-out clouds of the recipe (real names are paths relative to the data folder
     :func:`data_dir` ``(data)``).
 
     ``simulated_cities=False`` leaves the simulated cities out (the held-out parts do not depend on it).
+    ``vegetation_labels=True`` labels the tree-like points of the real training clouds as high vegetation
+    (:func:`label_vegetation`; the rule runs on each training part alone, after the split, so nothing of a held-out
+    part is read); the shipped weights were trained without.
     """
     train, held = [], []
     for name in [DELFT, STBARTH]:
@@ -102,6 +123,8 @@ def load(data: str | Path | None = None, simulated_cities: bool = True) -> Recip
         held.append((f"{name} (x >= min + {HOLDOUT_STRIPS[name]:g} m)", cloud.subset(out)))
     for name in MONTPELLIER:
         (held if name == HELD_OUT_TILE else train).append((name, read(name, data)))
+    if vegetation_labels:
+        train = [(name, label_vegetation(cloud)) for name, cloud in train]
     if simulated_cities:
         train += [(f"sim/seed {seed}", simulated(seed)) for seed in SIM_SEEDS]
     return RecipeData(train, held)

@@ -92,11 +92,14 @@ class Facade:
         return self.frame.basis()
 
     def to_local(self, sdt: np.ndarray) -> np.ndarray:
-        """Façade coordinates (..., 3) to the local frame."""
-        return self.frame.to_crs(sdt)
+        """Façade coordinates (..., 3) to the local frame (triangles (M, 3, 3) too: FacadeFrame takes (N, 3))."""
+        sdt = np.asarray(sdt, dtype=np.float64)
+        return self.frame.to_crs(sdt.reshape(-1, 3)).reshape(sdt.shape)
 
     def to_facade(self, xyz: np.ndarray) -> np.ndarray:
-        return self.frame.to_facade(xyz)
+        """Local points (..., 3) to façade coordinates."""
+        xyz = np.asarray(xyz, dtype=np.float64)
+        return self.frame.to_facade(xyz.reshape(-1, 3)).reshape(xyz.shape)
 
 
 @dataclasses.dataclass

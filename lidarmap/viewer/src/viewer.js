@@ -99,13 +99,55 @@ class Viewer {
     const centre = box.getCenter(new Vector3());
     const radius = 0.8 * Math.max(box.getSize(new Vector3()).length() / 2, 1); // a city is flat: tighter
     const distance = radius / Math.sin((this.camera.fov * Math.PI) / 360);
-    this.camera.position.copy(centre).add(new Vector3(0.55, 0.65, 0.55).normalize().multiplyScalar(distance));
+    this.camera.position.copy(centre).add(this.viewDirection().multiplyScalar(distance));
     this.camera.near = distance / 1000;
     this.camera.far = distance * 10;
-    this.camera.updateProjectionMatrix();
+    this.centreRightOfPanel();
     this.controls.target.copy(centre);
     this.controls.update();
     this.render();
+  }
+
+  // Shift the picture so that the scene's centre is in the middle of what the side panel leaves free.
+  centreRightOfPanel() {
+    const w = this.container.clientWidth, h = this.container.clientHeight;
+    const side = document.getElementById("side");
+    const covered = side ? side.offsetLeft + side.offsetWidth : 0;
+    if (covered > 0 && w > 2 * covered) this.camera.setViewOffset(w, h, -covered / 2, 0, w, h);
+    else this.camera.clearViewOffset();
+    this.camera.updateProjectionMatrix();
+  }
+
+  // Where to look from: square to the façades when most face one axis (a façade map: two rows facing their
+  // street), from the side most of them face, turned 25° for depth; else from the south-east. Above, in both cases.
+  viewDirection() {
+    const sum = new Vector3(), a = new Vector3(), b = new Vector3(), c = new Vector3();
+    let cxx = 0, cxz = 0, czz = 0;
+    this.model.traverse((mesh) => {
+      if (!mesh.isMesh || !["wall", "window"].includes(mesh.userData.kind)) return;
+      const pos = mesh.geometry.attributes.position, index = mesh.geometry.index;
+      const count = index ? index.count / 3 : pos.count / 3;
+      for (let t = 0; t < count; t++) {
+        const [i, j, k] = [0, 1, 2].map((n) => (index ? index.getX(3 * t + n) : 3 * t + n));
+        a.fromBufferAttribute(pos, i).applyMatrix4(mesh.matrixWorld);
+        b.fromBufferAttribute(pos, j).applyMatrix4(mesh.matrixWorld);
+        c.fromBufferAttribute(pos, k).applyMatrix4(mesh.matrixWorld);
+        const n = b.sub(a).cross(c.sub(a)).setY(0); // horizontal part; |n| ~ twice the area of a wall triangle
+        const len = n.length();
+        if (len === 0) continue;
+        cxx += (n.x * n.x) / len; cxz += (n.x * n.z) / len; czz += (n.z * n.z) / len;
+        sum.add(n);
+      }
+    });
+    const trace = cxx + czz;
+    const spread = Math.sqrt(((cxx - czz) / 2) ** 2 + cxz ** 2); // (λ1 - λ2) / 2
+    if (trace > 0 && spread > 0.3 * trace) {
+      const angle = 0.5 * Math.atan2(2 * cxz, cxx - czz);
+      const axis = new Vector3(Math.cos(angle), 0, Math.sin(angle));
+      if (axis.dot(sum) < 0) axis.negate();
+      return axis.applyAxisAngle(new Vector3(0, 1, 0), (25 * Math.PI) / 180).setY(0.75).normalize();
+    }
+    return new Vector3(0.55, 0.65, 0.55).normalize();
   }
 
   render() {
@@ -115,7 +157,7 @@ class Viewer {
   resize() {
     const w = this.container.clientWidth, h = this.container.clientHeight;
     this.camera.aspect = w / h;
-    this.camera.updateProjectionMatrix();
+    this.centreRightOfPanel();
     this.renderer.setSize(w, h);
     this.render();
   }
