@@ -1,6 +1,6 @@
 """Mobile-mapping data as published (issue 16): PLY / text readers, bad inputs, and ``map update`` through the CLI
 from a PLY campaign with per-point origins, with an estimated sensor path, and without footprints, scored against
-the simulator's truth (a dev seed; 7001-7010 are reserved for evaluation)."""
+the simulator's truth (a dev seed, never an evaluation seed)."""
 
 from __future__ import annotations
 

@@ -85,19 +85,22 @@ class SensorParams:
 # Per-point origins
 
 
-def origin_knots(first: int, origins: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
-    """Knots (point numbers, origins) of one chunk of points numbered from ``first``: the largest stride whose linear
-    interpolation reproduces every origin within ``tolerance`` (the chunk's first and last points always kept)."""
+def origin_knots(first: int, origins: np.ndarray, tolerance: float,
+                 times: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Knots (clock, origins) of one chunk of points: the largest stride whose linear interpolation over the clock
+    reproduces every origin within ``tolerance`` (the chunk's first and last points always kept). The clock is
+    ``times`` (increasing) when given, else the point number counted from ``first``."""
     n = len(origins)
     index = np.arange(n)
+    clock = first + index.astype(np.float64) if times is None else np.asarray(times, dtype=np.float64)
     for stride in (1024, 256, 64, 16, 4):
         keep = np.unique(np.concatenate([index[::stride], [n - 1]]))
         if len(keep) < 2:
             continue
-        approx = np.column_stack([np.interp(index, keep, origins[keep, k]) for k in range(3)])
+        approx = np.column_stack([np.interp(clock, clock[keep], origins[keep, k]) for k in range(3)])
         if np.max(np.abs(approx - origins)) <= tolerance:
-            return first + keep.astype(np.float64), origins[keep]
-    return first + index.astype(np.float64), origins
+            return clock[keep], origins[keep]
+    return clock, origins
 
 
 def knots_trajectory(times: list[np.ndarray], positions: list[np.ndarray], source: str | None) -> Trajectory:

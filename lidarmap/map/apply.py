@@ -31,14 +31,19 @@ from lidarmap.io.crs import horizontal_crs, same_crs
 from lidarmap.io.footprints import check_overlap, read_footprints
 from lidarmap.io.points import read_points
 from lidarmap.map import refine
-from lidarmap.map.model import BuildingMap, Campaign
-from lidarmap.map.store import MapStore, campaign_fingerprint, damaged_map_error, writer_lock
 from lidarmap.map.mls import (
     DERIVED,
     discover_campaign,
     join_given_footprints,
     merge_discovered,
     mobile_campaign,
+)
+from lidarmap.map.model import BuildingMap, Campaign
+from lidarmap.map.store import (
+    MapStore,
+    campaign_fingerprint,
+    damaged_map_error,
+    writer_lock,
 )
 from lidarmap.map.update import UpdateParams, fuse_campaign
 
@@ -190,7 +195,8 @@ def _new_map(stored: BuildingMap, points: _Points, footprints: Footprints, input
     with tempfile.TemporaryDirectory(dir=map_path.resolve().parent, prefix=_spool_prefix(map_path)) as spool:
         fused = fuse_campaign(stored, points.stream, points.mobile.trajectory, footprints, facade_params,
                               refine_params, campaign_id, seed, update=update, spool_dir=Path(spool) / "points",
-                              progress=progress, noise_factor=points.mobile.noise_factor)
+                              progress=progress, noise_factor=points.mobile.noise_factor,
+                              pulse_times=points.mobile.pulse_times)
     return _Fused(fused.map, fused.failed)
 
 

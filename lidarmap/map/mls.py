@@ -54,6 +54,7 @@ class MobileCampaign:
     trajectory: Trajectory
     mode: str
     noise_factor: float
+    pulse_times: bool = True  # False: gps_time is only the trajectory's clock (point number, arc length)
 
     @property
     def estimated(self) -> bool:
@@ -84,15 +85,28 @@ def _with_clock(chunks: Iterator[PointCloud], clock) -> Iterator[PointCloud]:
 
 def _origins_trajectory(header: PointsHeader, chunk_points: int, crs: Any, columns: str | None,
                         params: SensorParams) -> Trajectory:
+    """Knots from the origins: over GPS time when the points have it (one knot per pulse time, in time order),
+    else over the point number."""
     times, positions, first = [], [], 0
     for chunk in _stream(header, chunk_points, crs, columns):
         origins = np.column_stack([chunk.attrs[f] for f in ORIGIN_FIELDS]).astype(np.float64)
         if not np.all(np.isfinite(origins)):
             raise InputError("NaN or infinite sensor origins (x_origin, y_origin, z_origin)", header.path)
+        if header.has_gps_time:
+            gps = np.asarray(chunk.attrs["gps_time"], dtype=np.float64)
+            gps, keep = np.unique(gps, return_index=True)  # sorted; the returns of one pulse share its origin
+            t, xyz = origin_knots(0, origins[keep], params.origin_tolerance, gps)
+            times.append(t)
+            positions.append(xyz)
+            continue
         t, xyz = origin_knots(first, origins, params.origin_tolerance)
         times.append(t)
         positions.append(xyz)
         first += len(chunk)
+    if header.has_gps_time:  # chunks need not be in time order
+        t, xyz = np.concatenate(times), np.concatenate(positions)
+        order = np.argsort(t, kind="stable")
+        times, positions = [t[order]], [xyz[order]]
     return knots_trajectory(times, positions, str(header.path))
 
 
@@ -137,16 +151,20 @@ def mobile_campaign(points: Path, trajectory: Path | None, crs: Any, columns: st
         return MobileCampaign(source(), read_trajectory(trajectory, *(trajectory_gaps or ())), MODES[0], 1.0)
     if header.has_origins:
         track = _origins_trajectory(header, chunk_points, crs, columns, params)
+        if header.has_gps_time:
+            return MobileCampaign(source(), track, MODES[1], 1.0)
         return MobileCampaign(source(lambda first, chunk: first + np.arange(len(chunk), dtype=np.float64)),
-                              track, MODES[1], 1.0)
+                              track, MODES[1], 1.0, pulse_times=False)
     sample = _sample(header, n, chunk_points, crs, columns, params)
     path = estimate_path(sample["xyz"], sample["classification"], params, str(points))
     log.info("%s: sensor path estimated from the cloud (%.0f m)", points, path.s[-1])
     if sample["gps_time"] is not None:
         track = timed_path(path, sample["gps_time"], sample["xyz"][:, :2], params, str(points))
         return MobileCampaign(source(), track, MODES[2], params.noise_factor)
+    log.warning("%s: no trajectory, origins or GPS time: every point's sensor is taken across the track from it "
+                "(a yawed or crossed profiler breaks this; docs/mls.md)", points)
     return MobileCampaign(source(lambda first, chunk: path_times(path, chunk.xyz[:, :2])),
-                          path_trajectory(path, str(points)), MODES[3], params.noise_factor)
+                          path_trajectory(path, str(points)), MODES[3], params.noise_factor, pulse_times=False)
 
 
 # ----------------------------------------------------------------------------------------------------------------------

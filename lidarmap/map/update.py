@@ -378,16 +378,20 @@ def _joined_ids(camp: CampaignData, job: BuildingJob, params: FacadeParams) -> n
 
 
 def group_task(job: GroupJob, trajectory: Trajectory, fparams: FacadeParams, rparams: RefineParams,
-               noise_factor: float = 1.0, strict: bool = False) -> GroupOutcome:
+               noise_factor: float = 1.0, pulse_times: bool = True, strict: bool = False) -> GroupOutcome:
     """The group's context prepared once (file order, sensor positions, indices), then :func:`building_task` for
     each member; a member that fails becomes a :class:`TaskFailure` (``strict``: the error is raised).
-    ``noise_factor``: the campaign's Gaussians are that much wider in fusion (an estimated sensor path)."""
+    ``noise_factor``: the campaign's Gaussians are that much wider in fusion (an estimated sensor path);
+    ``pulse_times`` False: the points' ``gps_time`` is only the trajectory's clock (point number, arc length), not
+    the pulses' times, so the ray evidence does not order pulses by it."""
     clock = time.perf_counter()
     order = np.argsort(job.points["index"], kind="stable")  # file order, as the whole campaign would have them
     points = {name: values[order] for name, values in job.points.items()}
     camp = campaign_data(points["xyz"], points["gps_time"], points["ground"], points["building"], trajectory,
                          job.limits, job.track, job.origin, fparams)
     camp.noise_factor = noise_factor
+    if not pulse_times:
+        camp.gps = None
     timings = {"prepare": time.perf_counter() - clock}
     outcomes: list[BuildingOutcome | TaskFailure] = []
     for member in job.members:
@@ -530,7 +534,8 @@ def fuse_campaign(stored: BuildingMap, source: CampaignSource, trajectory: Traje
                   fparams: FacadeParams, rparams: RefineParams, campaign_id: int, seed: int = 0,
                   update: UpdateParams | None = None, spool_dir: str | Path | None = None, strict: bool = False,
                   timings: dict | None = None,
-                  progress: Callable[[int, int], None] | None = None, noise_factor: float = 1.0) -> FusedCampaign:
+                  progress: Callable[[int, int], None] | None = None, noise_factor: float = 1.0,
+                  pulse_times: bool = True) -> FusedCampaign:
     """The map after one mobile campaign (see the module doc); ``stored`` is not modified.
 
     ``spool_dir``: a folder for the spool (created, removed at the end), ``None`` keeps it in memory. ``strict``
@@ -557,7 +562,8 @@ def fuse_campaign(stored: BuildingMap, source: CampaignSource, trajectory: Traje
         jobs = (_group_job(group, stored, footprints, tree, campaign, fparams, rparams, campaign_id, seed)
                 for group in groups)
         outcomes: dict[int, Any] = {}
-        for number, result in _run_jobs(jobs, (trajectory, fparams, rparams, noise_factor), update, strict):
+        for number, result in _run_jobs(jobs, (trajectory, fparams, rparams, noise_factor, pulse_times), update,
+                                        strict):
             if isinstance(result, TaskFailure):  # the group's context could not be prepared: all its buildings
                 outcomes.update((b, result) for b in groups[number])
             else:
