@@ -31,7 +31,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from lidarmap.aerial.pipeline import building_dir, write_run_glb
+from lidarmap.aerial.pipeline import building_dir, run_folders, write_run_glb
 from lidarmap.export.gltf import glb_building_ids
 from lidarmap.viewer import viewer_page
 
@@ -88,7 +88,7 @@ def main() -> None:
         run = args.run or delft_run(work)
         summary = json.loads((run / "summary.json").read_text())
         records, crs = summary["records"], summary.get("crs") or ""
-        stems = {fid: Path(folder).name for fid, folder in summary["folders"].items()}
+        stems = run_folders(summary)
         copy = work / "run"  # write into a copy: the run folder is left as it is
         for r in records:
             shutil.copytree(building_dir(run, stems[r["id"]]), building_dir(copy, stems[r["id"]]))

@@ -319,3 +319,11 @@ def test_a_run_without_buildings_still_gets_a_glb() -> None:
 
     assert glb_building_ids(glb_bytes([])) == []
     assert glb_building_ids(glb_bytes([GlbBuilding("empty", {}, {})])) == ["empty"]
+
+
+def test_run_folders_from_the_summary_and_for_runs_before_the_folder_map() -> None:
+    from lidarmap.aerial.pipeline import run_folders
+
+    assert run_folders({"folders": {"a/b": "buildings/a_b_2"}, "records": []}) == {"a/b": "a_b_2"}
+    older = {"records": [{"id": "a/b"}, {"id": "A_B"}, {"id": "c"}]}  # no "folders": file-safe ids, made unique
+    assert run_folders(older) == {"a/b": "a_b", "A_B": "A_B_2", "c": "c"}

@@ -704,6 +704,15 @@ def _write_glb(out: Path, result: RunResult, stems: dict[str, str]) -> None:
     write_run_glb(out, result.records, stems, result.prep.entries, crs_wkt)
 
 
+def run_folders(summary: dict[str, Any]) -> dict[str, str]:
+    """Building id -> folder name of a run from its ``summary.json``; runs written before the ``folders`` map named
+    every folder by its file-safe id (the stems of :func:`unique_stems` for ids without collisions)."""
+    folders = summary.get("folders")
+    if isinstance(folders, dict):
+        return {str(fid): Path(str(folder)).name for fid, folder in folders.items()}
+    return unique_stems(str(r["id"]) for r in summary["records"])
+
+
 def run_glb_buildings(out_dir: str | Path, records: Sequence[dict[str, Any]], stems: dict[str, str],
                       entries: Sequence[Any] = ()) -> Iterator[Any]:
     """A run's buildings for :mod:`lidarmap.export.gltf`, one mesh.ply loaded at a time: their building.json
@@ -750,7 +759,7 @@ def check_stage_names(stages: Iterable[str]) -> tuple[str, ...]:
 
 __all__ += ["building_dir", "building_fingerprint", "finished", "write_building", "check_stage_names",
             "building_mask", "check_out_dir", "densify_cloud", "flatten_cloud", "building_voxels", "STAGE_FUNCTIONS"]
-__all__ += ["RUN_GLB_TITLE", "run_glb_buildings", "write_run_glb"]
+__all__ += ["RUN_GLB_TITLE", "run_folders", "run_glb_buildings", "write_run_glb"]
 
 
 def stream_tiles(paths: Sequence[str | Path], footprints: Footprints, params: PrepParams | None = None,

@@ -32,13 +32,13 @@ def _run_glb(out_dir: Path) -> bytes:
     summary = out_dir / "summary.json"
     if not summary.is_file():
         raise InputError("neither buildings.glb nor summary.json here: not a 'lidarmap run' output folder", out_dir)
-    from lidarmap.aerial.pipeline import RUN_GLB_TITLE, run_glb_buildings
+    from lidarmap.aerial.pipeline import RUN_GLB_TITLE, run_folders, run_glb_buildings
     from lidarmap.export.gltf import glb_bytes
 
     try:
         run = json.loads(summary.read_text(encoding="utf-8"))
         records, crs_wkt = run["records"], run.get("crs") or ""
-        stems = {fid: Path(folder).name for fid, folder in run["folders"].items()}
+        stems = run_folders(run)
     except (ValueError, KeyError, TypeError) as exc:
         raise InputError(f"unreadable run summary ({exc})", summary) from None
     return glb_bytes(run_glb_buildings(out_dir, records, stems), crs_wkt, title=RUN_GLB_TITLE)
