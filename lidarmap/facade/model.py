@@ -53,11 +53,11 @@ class FacadeFrame:
         """CRS points (N, 3) to façade coordinates (s, t, d)."""
         # einsum, not ``@ basis.T``: a BLAS call per (N, 3) x (3, 3) product is 4-6x slower (thread start-up,
         # the transposed operand), and this runs on every point around every façade
-        return np.einsum("ij,kj->ik", np.asarray(xyz, dtype=np.float64) - self.origin, self.basis())
+        return np.einsum("...j,kj->...k", np.asarray(xyz, dtype=np.float64) - self.origin, self.basis())
 
     def to_crs(self, sdt: np.ndarray) -> np.ndarray:
         """Façade coordinates (N, 3) (s, t, d) back to CRS points."""
-        return np.einsum("ij,jk->ik", np.asarray(sdt, dtype=np.float64), self.basis()) + self.origin
+        return np.einsum("...j,jk->...k", np.asarray(sdt, dtype=np.float64), self.basis()) + self.origin
 
     def polygon_to_crs(self, polygon: Polygon, depth: float = 0.0) -> np.ndarray:
         """Exterior ring of a façade-coordinate polygon as CRS 3D points (closing vertex dropped)."""
