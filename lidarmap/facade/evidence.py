@@ -234,11 +234,12 @@ def opening_cells(ev: CellEvidence, params: FacadeParams) -> np.ndarray:
     return hole
 
 
-def opaque_cells(ev: CellEvidence, params: FacadeParams) -> np.ndarray:
-    """Cells whose passing pulses mostly came back from a surface just behind the wall (a door leaf, a curtain):
-    at least ``opaque_share`` of them recessed returns."""
+def recessed_share(ev: CellEvidence) -> np.ndarray:
+    """Per cell, the share of the pulses through the wall plane that came back from just behind it (a door leaf, a
+    curtain: 1; glass returning a share of the pulses, a room, nothing: less); NaN where no pulse passed."""
     passed = ev.passed
-    return (passed > 0) & (ev.recessed >= params.evidence.opaque_share * passed)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(passed > 0, ev.recessed / np.maximum(passed, 1e-12), np.nan)
 
 
 def vote_weights(ev: CellEvidence, occluded: np.ndarray, params: FacadeParams) -> np.ndarray:

@@ -34,8 +34,8 @@ from lidarmap.facade.evidence import (
     cell_evidence,
     local_wall_depth,
     missed_pulse_crossings,
-    opaque_cells,
     opening_cells,
+    recessed_share,
     vote_weights,
 )
 from lidarmap.facade.layers import (
@@ -386,7 +386,7 @@ class _Visibility:
     below: np.ndarray  # cells below the ground line
     unsampled: np.ndarray  # cells no pulse reached although nothing hid them: not observed, not an occlusion
     weights: np.ndarray  # the campaign's vote weight per cell (1..4)
-    opaque: np.ndarray | None = None  # cells closed by a surface just behind the wall (door leaves, curtains)
+    opaque: np.ndarray | None = None  # share of the passing pulses returned just behind the wall (NaN: none)
 
 
 def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens: np.ndarray, around: np.ndarray,
@@ -459,7 +459,7 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
     values = value_grid(observed, hidden, passed)
     weights = vote_weights(ev, occluded, params)
     return _Visibility(values=values, ground_t=ground_t, below=below, unsampled=unsampled, weights=weights,
-                       opaque=opaque_cells(ev, params) if ray else None)
+                       opaque=recessed_share(ev) if ray else None)
 
 
 class _Elements:

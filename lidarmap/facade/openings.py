@@ -239,7 +239,7 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
       ``occlusion_touch_max`` of its border occluded, fill ratio below ``Ta``, rectangle ε_w above
       ``max_window_uncertainty`` or a side below ``min_opening_size``: UNKNOWN (uncertainty inf);
     * door-sized and reaching the ground (:func:`door_or_window`; ``ground_t``: ground height per grid column in
-      façade t, default: the grid's bottom edge ``t0``; ``opaque``: cells closed by a leaf just behind the wall):
+      façade t, default: the grid's bottom edge ``t0``; ``opaque``: share of passing pulses back from just behind):
       DOOR;
     * otherwise WINDOW with the fitted rectangle and its eq. (3) ε_w (bridged occluded cells count as 0).
 
@@ -299,14 +299,17 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
 def door_or_window(bounds: tuple[float, float, float, float], ground: float, mask: np.ndarray,
                    opaque: np.ndarray | None, params: FacadeParams) -> ElementKind:
     """A door is at least ``door_min_height`` tall, at most ``door_max_width`` wide and starts within
-    ``door_bottom_tol`` of the ground line below it, or within ``door_leaf_tol`` when at least half of its cells are
-    ``opaque`` (a leaf at the top of steps); everything else, shop windows and windows with low sills included,
-    is a window."""
+    ``door_bottom_tol`` of the ground line below it, or within ``door_leaf_tol`` when it is closed by a leaf: on
+    average over its cells with passing pulses, at least ``opaque_share`` of them came back from just behind the
+    wall (``opaque``: that share per cell, NaN without passing pulses; a door at the top of steps). Everything
+    else, shop windows and windows with low sills included, is a window."""
     op = params.openings
     width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
     if height < op.door_min_height or width > op.door_max_width:
         return ElementKind.WINDOW
-    leaf = opaque is not None and mask.any() and float(opaque[mask].mean()) >= 0.5
+    share = opaque[mask] if opaque is not None else np.zeros(0)
+    share = share[np.isfinite(share)]
+    leaf = len(share) > 0 and float(share.mean()) >= params.evidence.opaque_share
     tol = op.door_leaf_tol if leaf else op.door_bottom_tol
     return ElementKind.DOOR if bounds[2] <= ground + tol else ElementKind.WINDOW
 

@@ -388,8 +388,8 @@ class EvidenceParams:
     max_wall_share (0.3): ... and at most this share of its pulses returned from the wall.
     evidence_grow_cells (2): cells without any pulse within this many cells of an opening cell join it (scan
         lines of a far façade lie further apart than a cell; the opening's edge lies somewhere in the gap).
-    opaque_share (0.7): a cell whose passing pulses came back at least this often from just behind the wall
-        (within layer_back) is opaque: a door leaf or curtain, not glass or a room.
+    opaque_share (0.7): an opening whose passing pulses came back at least this often (mean over its cells) from
+        just behind the wall (within layer_back) is closed by a leaf (a door; glass, rooms and dark openings less).
     weight_pulses (2.0): a campaign's vote on a cell weighs 1 + floor(pulses x cos(incidence) / weight_pulses),
         at most 4 ...
     weight_occlusion_cells (2): ... halved (at least 1) within this many cells of an occluded cell.
