@@ -514,6 +514,48 @@ FOLDERS: dict[str, Case] = {
         ["map", "update", "/sys/kernel/city.lmap", "--points", w["mls"], "--trajectory", w["traj"],
          "--footprints", w["mfp"]], ["/sys/kernel"]),
 }
+
+
+def _users_file_in_marked(kind: str, name: str) -> Callable[[Path], Path]:
+    """A ``kind`` output folder where the user put a file of the name the next ``kind`` would write."""
+    def make(t: Path) -> Path:
+        out = _marked(t, kind, "ours")
+        (out / name).write_bytes(b"the user's own file")
+        return out
+    return make
+
+
+#: The other commands that write a folder: name -> argv before the folder, argv after it, the name of its first output.
+FOLDER_COMMANDS: dict[str, tuple[Callable[[dict], list], list, str]] = {
+    "map render": (lambda w: ["map", "render", w["map"], "-o"], ["--width", "300"], "h_facade00.png"),
+    "segment predict": (lambda w: ["segment", "predict", w["laz"], "-o"], ["--method", "baseline"], "tile.laz"),
+    "simulate": (lambda w: ["simulate"], ["--buildings", "1", "--campaigns", "0"], "als.laz"),
+}
+KINDS = {"map render": "render", "segment predict": "segment-predict", "simulate": "simulate"}
+
+
+def _folder_case(command: str, make: Callable[[Path], Path], needles: Callable[[Path], list[str]]) -> Case:
+    before, after, _ = FOLDER_COMMANDS[command]
+
+    def case(w: dict, t: Path) -> tuple[list, list[str]]:
+        return [*before(w), make(t), *after], needles(t)
+    return case
+
+
+for _command, (_, _, _first) in FOLDER_COMMANDS.items():
+    FOLDERS[f"{_command} into the user's folder"] = _folder_case(
+        _command, lambda t, f=_first: _users_folder(t, f), lambda t: ["proj", "not written by lidarmap"])
+    FOLDERS[f"{_command} into a run output"] = _folder_case(
+        _command, lambda t: _marked(t, "run"), lambda t: ["marked", "holds a lidarmap run output"])
+    FOLDERS[f"{_command} over a file of the user's"] = _folder_case(
+        _command, _users_file_in_marked(KINDS[_command], _first), lambda t, f=_first: ["ours", f,
+                                                                                     "not written by lidarmap"])
+    FOLDERS[f"{_command} output is a file"] = _folder_case(
+        _command, lambda t: _write(t / "out", b"x"), lambda t: ["out", "is a file"])
+    FOLDERS[f"{_command} missing parent"] = _folder_case(
+        _command, lambda t: t / "no" / "out", lambda t: [f"{t / 'no'}", "parent folder"])
+    FOLDERS[f"{_command} into a read-only folder"] = _folder_case(
+        _command, lambda t: Path("/sys/kernel/lidarmap-out"), lambda t: ["/sys/kernel", "cannot write"])
 for _name, _case in FOLDERS.items():
     CASES[f"folder/{_name}"] = _case
 
@@ -763,3 +805,66 @@ def test_a_later_demo_clears_only_what_the_earlier_one_wrote(tmp_path: Path) -> 
     (out / "mine").mkdir()
     _prepare(out)
     assert sorted(p.name for p in out.iterdir()) == [MARKER, "mine", "notes.txt"]
+
+
+def test_rerender_replaces_only_its_own_pngs(world: dict[str, Path], tmp_path: Path) -> None:
+    out = tmp_path / "renders"
+    assert run("map", "render", world["map"], "-o", out, "--width", "300")[0] == 0
+    pngs = read_marker(out)["written"]
+    assert pngs == ["h_facade00.png"]
+    first = (out / pngs[0]).read_bytes()
+    (out / "mine.txt").write_text("mine\n")
+    (out / "z_facade00.png").write_bytes(b"the user's picture")
+    marker = json.loads((out / MARKER).read_text())  # as if an earlier render had a façade this one has not
+    (out / "gone_facade03.png").write_bytes(b"old render")
+    (out / MARKER).write_text(json.dumps({**marker, "written": [*marker["written"], "gone_facade03.png"]}))
+    code, _, err = run("map", "render", world["map"], "-o", out, "--width", "400")
+    assert code == 0, err
+    assert (out / "mine.txt").read_text() == "mine\n" and (out / "z_facade00.png").read_bytes() == b"the user's picture"
+    assert not (out / "gone_facade03.png").exists()  # the earlier render's, and not part of this one
+    assert (out / pngs[0]).read_bytes() != first  # replaced (another width)
+    assert read_marker(out)["written"] == pngs
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["renders"]  # no temporary folder left beside it
+
+
+def test_a_render_failing_partway_leaves_nothing(world: dict[str, Path], tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """A disk that fills up after the first PNG: no PNG left behind, an earlier render untouched."""
+    import errno
+
+    from lidarmap.export import render
+
+    earlier = tmp_path / "earlier"
+    assert run("map", "render", world["map"], "-o", earlier, "--width", "300")[0] == 0
+    (earlier / "mine.txt").write_text("mine\n")
+    original = render.render_facade
+
+    def full_disk(facade, path, *args, **kwargs):
+        original(facade, path, *args, **kwargs)  # the PNG is written, then the disk is full
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(render, "render_facade", full_disk)
+    before = snapshot(tmp_path)
+    for out in (tmp_path / "new", earlier):
+        code, _, err = run("map", "render", world["map"], "-o", out, "--width", "400")
+        assert code == 2 and len(err.strip().splitlines()) == 1 and "No space left on device" in err, err
+        assert snapshot(tmp_path) == before  # no new folder, no temporary one, no PNG changed
+
+
+def test_predict_again_replaces_only_its_own_files(world: dict[str, Path], tmp_path: Path) -> None:
+    out = tmp_path / "seg"
+    args = ["--method", "baseline"]
+    assert run("segment", "predict", world["laz"], "-o", out, *args)[0] == 0
+    first = (out / "tile.laz").read_bytes()
+    (out / "mine.txt").write_text("mine\n")
+    other = shutil.copyfile(world["laz"], tmp_path / "other.laz")
+    code, _, err = run("segment", "predict", world["laz"], other, "-o", out, *args)
+    assert code == 0, err
+    assert (out / "tile.laz").read_bytes() == first  # replaced by the same result (deterministic)
+    assert (out / "mine.txt").read_text() == "mine\n"
+    assert read_marker(out)["kind"] == "segment-predict"
+    assert read_marker(out)["written"] == ["other.laz", "tile.laz"]
+    code, _, err = run("segment", "predict", world["prep"], "-o", out, *args)  # a prep folder: OUT/prep/
+    assert code == 0, err
+    assert read_marker(out)["written"] == ["other.laz", "prep", "tile.laz"]  # earlier outputs stay (like stages)
+    assert sorted(p.name for p in (out / "prep" / "buildings").iterdir()) == ["a.laz", "b.laz"]

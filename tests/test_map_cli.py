@@ -23,6 +23,7 @@ from lidarmap.export.render import facade_image_size
 from lidarmap.export.summary import count_map
 from lidarmap.export.validate import validate_cityjson
 from lidarmap.io.footprints import read_footprints
+from lidarmap.io.outdir import MARKER, read_marker
 from lidarmap.map.store import MapStore, campaign_fingerprint
 
 
@@ -136,7 +137,8 @@ def test_render_writes_one_png_per_facade(map1, tmp_path) -> None:
     with MapStore.open(map1[0]) as store:
         m = store.load()
     facades = {f"{bid}_facade{f.facade_id:02d}.png": f for bid, b in m.buildings.items() for f in b.facades}
-    assert sorted(p.name for p in (tmp_path / "png").iterdir()) == sorted(facades)
+    assert sorted(p.name for p in (tmp_path / "png").iterdir()) == sorted([*facades, MARKER])
+    assert read_marker(tmp_path / "png")["written"] == sorted(facades)  # the folder is ours: a rerender replaces
     for name, facade in facades.items():
         assert Image.open(tmp_path / "png" / name).size == facade_image_size(facade, 500)
 

@@ -350,19 +350,28 @@ def export_command(map_path: Path = MapArgument,
                   f"regions, {len(doc['vertices']):,} vertices")
 
 
+#: Kind of the output-folder marker of ``map render`` (:mod:`lidarmap.io.outdir`).
+RENDER_KIND = "render"
+
+
 @handle_errors
 def render_command(map_path: Path = MapArgument,
-                   out_dir: Path = typer.Option(..., "--output", "-o", help="Folder for the PNGs (created).",
-                                                file_okay=False),
+                   out_dir: Path = typer.Option(..., "--output", "-o", help="Folder for the PNGs (created; an "
+                                                "empty folder or an earlier render, whose PNGs are replaced: files "
+                                                "of yours there are never touched).", file_okay=False),
                    as_of: Optional[int] = AsOfOption, building: Optional[str] = BuildingOption,
                    width: int = typer.Option(1200, "--width", min=300, max=8000, help="Image width in pixels.")) -> None:
     """One PNG per façade (paper Fig. 10): layers coloured, windows red with ε, unknown regions white."""
     from lidarmap.export.render import render_map
+    from lidarmap.io.outdir import atomic_out_dir, claim_out_dir
 
+    claim_out_dir(out_dir, RENDER_KIND)  # before loading the map: a wrong folder is refused at once
     building_map = load_map(map_path, as_of, building)
-    with progress() as bar:
+    # rendered into a temporary folder published at the end: a failure leaves no PNGs behind; the folder holds
+    # one render (replace=True), so PNGs of façades an earlier render had and this one has not are removed
+    with atomic_out_dir(out_dir, RENDER_KIND, replace=True) as tmp, progress() as bar:
         task = bar.add_task("rendering façades", total=None)
-        written = render_map(building_map, out_dir, width_px=width,
+        written = render_map(building_map, tmp, width_px=width,
                              progress=lambda done, total: bar.update(task, completed=done, total=total))
     table_console().print(f"wrote {len(written)} façade image(s) to {out_dir} ({_state(building_map, as_of)})")
 

@@ -123,6 +123,10 @@ def _predict_with_bar(cloud: Any, model: Any, params: Any, description: str) -> 
 # ----------------------------------------------------------------------------------------------------------------
 
 
+#: Kind of the output-folder marker of ``segment predict`` (:mod:`lidarmap.io.outdir`).
+PREDICT_KIND = "segment-predict"
+
+
 def output_paths(item: Input, out_dir: Path) -> list[Path]:
     """Where the segmented input goes: OUT/<file name> (suffix .laz), or OUT/<prep folder>/buildings/<file>."""
     if item.parts is None:
@@ -135,7 +139,8 @@ def output_paths(item: Input, out_dir: Path) -> list[Path]:
 def predict_command(
     inputs: list[Path] = typer.Argument(..., help="LAS/LAZ files and/or prep output folders."),
     out_dir: Path = typer.Option(..., "--out", "-o", help="Output folder (one LAZ per input file; a prep folder "
-                                 "becomes OUT/<folder>/ with its index).", file_okay=False),
+                                 "becomes OUT/<folder>/ with its index; created, or an empty folder or an earlier "
+                                 "predict output: files of yours there are never replaced).", file_okay=False),
     method: Optional[str] = typer.Option(None, "--method", "-m", help=METHOD_HELP),
     model: Optional[Path] = typer.Option(None, "--model", help=MODEL_HELP, dir_okay=False),
     union: Optional[bool] = typer.Option(None, "--union/--no-union", help="Keep input class-6 points as building "
@@ -151,6 +156,7 @@ def predict_command(
     """Classify building points: class 6 where predicted, extra dimension building_probability; order kept."""
     from lidarmap.io.atomic import write_text_atomic
     from lidarmap.io.las import write_las
+    from lidarmap.io.outdir import atomic_out_dir, claim_out_dir
     from lidarmap.segment.predict import segmented_cloud
 
     params = _predict_params(config, union=union, threshold=threshold, seed=seed, device=device,
@@ -170,28 +176,33 @@ def predict_command(
             if key in sources:
                 raise InputError("output would overwrite an input; choose another -o", target)
             planned[key] = item.path
+    claim_out_dir(out_dir, PREDICT_KIND)  # before any work: a foreign folder is refused at once
     method, segmenter = load_segmenter(method, model)
     table = Table(title=f"segment predict ({method}) into {out_dir}", title_justify="left")
     for column in ("input", "points", "building points", "output"):
         table.add_column(column, justify="left" if column in ("input", "output") else "right")
-    for path in inputs:
-        item = read_input(path, crs)
-        probability = _predict_with_bar(item.cloud, segmenter, params, f"segmenting {item.name}")
-        result = segmented_cloud(item.cloud, probability, params)
-        targets = output_paths(item, out_dir)
-        if item.parts is None:
-            write_las(targets[0], result)
-        else:
-            start = 0
-            for target, (_, count) in zip(targets, item.parts):
-                write_las(target, result.subset(slice(start, start + count)))
-                start += count
-            for name in PREP_SIDE_FILES:
-                if (item.path / name).exists():
-                    write_text_atomic(out_dir / item.path.name / name, (item.path / name).read_text("utf-8"))
-        building = int((result.attrs["classification"] == 6).sum())
-        table.add_row(item.name, f"{len(result):,}", f"{building:,}",
-                      str(targets[0] if item.parts is None else targets[0].parent.parent))
+    # written into a temporary folder published at the end (like the stage commands): an error leaves out_dir as
+    # it was; earlier predict outputs there stay (replace=False), files of the user's are never replaced
+    with atomic_out_dir(out_dir, PREDICT_KIND, replace=False) as tmp:
+        for path in inputs:
+            item = read_input(path, crs)
+            probability = _predict_with_bar(item.cloud, segmenter, params, f"segmenting {item.name}")
+            result = segmented_cloud(item.cloud, probability, params)
+            targets = output_paths(item, tmp)
+            if item.parts is None:
+                write_las(targets[0], result)
+            else:
+                start = 0
+                for target, (_, count) in zip(targets, item.parts):
+                    write_las(target, result.subset(slice(start, start + count)))
+                    start += count
+                for name in PREP_SIDE_FILES:
+                    if (item.path / name).exists():
+                        write_text_atomic(tmp / item.path.name / name, (item.path / name).read_text("utf-8"))
+            building = int((result.attrs["classification"] == 6).sum())
+            shown = output_paths(item, out_dir)
+            table.add_row(item.name, f"{len(result):,}", f"{building:,}",
+                          str(shown[0] if item.parts is None else shown[0].parent.parent))
     console.print(table)
 
 

@@ -23,9 +23,15 @@ def register(app: typer.Typer) -> None:
     app.command("simulate")(simulate_command)
 
 
+#: Kind of the output-folder marker of ``simulate`` (:mod:`lidarmap.io.outdir`).
+SIMULATE_KIND = "simulate"
+
+
 @handle_errors
 def simulate_command(
-    out_dir: Path = typer.Argument(..., help="Folder to write the simulated data and truth into (created).",
+    out_dir: Path = typer.Argument(..., help="Folder to write the simulated data and truth into (created; an "
+                                   "empty folder or an earlier simulation, which is replaced: files of yours there "
+                                   "are never touched).",
                                    file_okay=False),
     seed: Optional[int] = SeedOption,
     buildings: Optional[int] = typer.Option(None, "--buildings", help="Existing buildings (default 8); one "
@@ -43,6 +49,7 @@ def simulate_command(
     config: Optional[Path] = ConfigOption,
 ) -> None:
     """Simulate a city (aerial als.laz, mobile mls_<i>.laz + trajectory_<i>.csv, footprints.geojson, truth/)."""
+    from lidarmap.io.outdir import atomic_out_dir
     from lidarmap.sim import (  # imported here: keeps `lidarmap --help` fast
         SimParams,
         simulate,
@@ -50,7 +57,9 @@ def simulate_command(
 
     params = params_from(SimParams, config, seed=seed, buildings=buildings, campaigns=campaigns, family=family,
                          mls_format=mls_format, mls_origins=mls_origins, mls_gps_time=mls_gps_time)
-    with progress() as bar:
+    # simulated into a temporary folder published at the end: an error leaves out_dir as it was; a new simulation
+    # replaces what an earlier one there wrote (replace=True), and only that
+    with atomic_out_dir(out_dir, SIMULATE_KIND, replace=True) as tmp, progress() as bar:
         tasks: dict[str, int] = {}
 
         def report(task: str, done: int, total: int) -> None:
@@ -58,8 +67,8 @@ def simulate_command(
                 tasks[task] = bar.add_task(task, total=total)
             bar.update(tasks[task], completed=done, total=total)
 
-        result = simulate(out_dir, params, report)
-    table = Table(title=f"simulated {params.family} seed {params.seed} into {result.out_dir}", title_justify="left")
+        result = simulate(tmp, params, report)
+    table = Table(title=f"simulated {params.family} seed {params.seed} into {out_dir}", title_justify="left")
     table.add_column("file")
     table.add_column("points", justify="right")
     table.add_row(result.als.name, f"{result.als_points:,}")
