@@ -868,3 +868,16 @@ def test_predict_again_replaces_only_its_own_files(world: dict[str, Path], tmp_p
     assert code == 0, err
     assert read_marker(out)["written"] == ["other.laz", "prep", "tile.laz"]  # earlier outputs stay (like stages)
     assert sorted(p.name for p in (out / "prep" / "buildings").iterdir()) == ["a.laz", "b.laz"]
+
+
+def test_simulate_again_replaces_the_earlier_simulation_and_keeps_the_users(tmp_path: Path) -> None:
+    out = tmp_path / "city"
+    code, _, err = run("simulate", out, "--seed", "5", "--buildings", "1", "--campaigns", "1")
+    assert code == 0, err
+    assert (out / "mls_1.laz").exists() and "mls_1.laz" in read_marker(out)["written"]
+    (out / "notes.txt").write_text("mine\n")
+    code, _, err = run("simulate", out, "--seed", "5", "--buildings", "1", "--campaigns", "0")
+    assert code == 0, err
+    assert not (out / "mls_1.laz").exists() and not (out / "trajectory_1.csv").exists()  # the earlier campaign's
+    assert (out / "notes.txt").read_text() == "mine\n"
+    assert read_marker(out)["written"] == ["als.laz", "footprints.geojson", "truth"]
