@@ -155,8 +155,11 @@ def _rotation(rng: np.random.Generator) -> float:
     return float((rng.integers(4) * 90 + rng.uniform(8.0, 82.0)) % 360)
 
 
-def _layout_rows(rng: np.random.Generator, n_buildings: int, n_streets: int) -> dict:
-    """Footprints per row (street, side) in row coordinates; the construction lot ends a random row."""
+def _layout_rows(rng: np.random.Generator, n_buildings: int, n_streets: int, setback: tuple[float, float] = (0.0, 2.5),
+                 l_share: float = 0.35, gap: tuple[float, float] = (3.5, 7.0)) -> dict:
+    """Footprints per row (street, side) in row coordinates: fronts ``setback`` metres behind the building line, an
+    L-shape with probability ``l_share``, ``gap`` metres between neighbours; the construction lot ends a random row.
+    (The hard family calls it with its own ranges: lidarmap/sim/hard.py.)"""
     keys = [(s, side) for s in range(n_streets) for side in (1, -1)]
     counts = [n_buildings // len(keys) + (1 if i < n_buildings % len(keys) else 0) for i in range(len(keys))]
     lot_row = int(rng.integers(len(keys)))
@@ -164,12 +167,12 @@ def _layout_rows(rng: np.random.Generator, n_buildings: int, n_streets: int) -> 
     for key, count in zip(keys, counts):
         a, rings, depth = 0.0, [], 0.0
         for _ in range(count + (1 if key == keys[lot_row] else 0)):
-            front = BUILDING_LINE + rng.uniform(0.0, 2.5)
+            front = BUILDING_LINE + rng.uniform(*setback)
             is_lot = key == keys[lot_row] and len(rings) == count
-            ring, width, d = footprint_ring(rng, a, front, l_shape=not is_lot and rng.random() < 0.35)
+            ring, width, d = footprint_ring(rng, a, front, l_shape=not is_lot and rng.random() < l_share)
             rings.append((ring, "shell" if is_lot else ("L" if len(ring) == 6 else "rectangle")))
             depth = max(depth, front - BUILDING_LINE + d)
-            a += width + rng.uniform(3.5, 7.0)
+            a += width + rng.uniform(*gap)
         rows[key] = {"rings": rings, "length": max(a - 5.0, 0.0), "depth": depth}
     return rows
 

@@ -28,7 +28,6 @@ from lidarmap.sim.buildings import (
     Element,
     Facade,
     building_soup,
-    footprint_ring,
     inward_depth,
     make_building,
     make_facades,
@@ -41,6 +40,7 @@ from lidarmap.sim.city import (
     Car,
     City,
     Street,
+    _layout_rows,
     _rotation,
     _street_positions,
     _street_trees,
@@ -136,7 +136,7 @@ def build_hard_city(params: SimParams) -> HardCity:
     """The deterministic hard-family city of ``params.seed``."""
     rng = np.random.default_rng([params.seed, 1, 18])
     n_streets = params.streets or (1 if params.buildings <= 10 else 2)
-    rows = _layout_rows(rng, params.buildings, n_streets)
+    rows = _layout_rows(rng, params.buildings, n_streets, setback=SETBACK, l_share=0.3, gap=GAP)
     street_ys = _street_positions(rows, n_streets)
     shifts = {key: -row["length"] / 2 for key, row in rows.items()}
     xs = [ring[:, 0] + shifts[key] for key, row in rows.items() for ring, _ in row["rings"]]
@@ -159,25 +159,6 @@ def build_hard_city(params: SimParams) -> HardCity:
     soup.extend(trees_soup(rng, trees))
     return HardCity(params=params, crs=CRS.from_epsg(CRS_EPSG), frame=LocalFrame(offset=origin, rotation_deg=angle),
                     terrain=terrain, streets=streets, buildings=buildings, trees=trees, static=soup.build())
-
-
-def _layout_rows(rng: np.random.Generator, n_buildings: int, n_streets: int) -> dict:
-    """Footprints per row (street, side): set-backs 0-5 m, gaps 1-14 m; the construction lot ends a random row."""
-    keys = [(s, side) for s in range(n_streets) for side in (1, -1)]
-    counts = [n_buildings // len(keys) + (1 if i < n_buildings % len(keys) else 0) for i in range(len(keys))]
-    lot_row = int(rng.integers(len(keys)))
-    rows = {}
-    for key, count in zip(keys, counts):
-        a, rings, depth = 0.0, [], 0.0
-        for _ in range(count + (1 if key == keys[lot_row] else 0)):
-            front = BUILDING_LINE + rng.uniform(*SETBACK)
-            is_lot = key == keys[lot_row] and len(rings) == count
-            ring, width, d = footprint_ring(rng, a, front, l_shape=not is_lot and rng.random() < 0.3)
-            rings.append((ring, "shell" if is_lot else ("L" if len(ring) == 6 else "rectangle")))
-            depth = max(depth, front - BUILDING_LINE + d)
-            a += width + rng.uniform(*GAP)
-        rows[key] = {"rings": rings, "length": max(a - 5.0, 0.0), "depth": depth}
-    return rows
 
 
 def _place_buildings(rng: np.random.Generator, rows: dict, street_ys: list[float], shifts: dict,
