@@ -242,10 +242,7 @@ def main() -> None:
     if not args.family_only:
         speed_and_accuracy(args)
     if not args.no_family:
-        if args.family_only:
-            print("## bench_facade\n")
-        runs = facade_scores.run_families(args.eval, args.scenes, campaigns=1)
-        print(facade_scores.markdown(runs, args.eval, title="One campaign: standard scene vs hard family"))
+        facade_scores.print_family_section(args, "bench_facade", 1, "One campaign: standard scene vs hard family")
 
 
 def speed_and_accuracy(args) -> None:

@@ -99,10 +99,7 @@ def main() -> None:
     if not args.family_only:
         refine_section(args)
     if not args.no_family:
-        if args.family_only:
-            print("## bench_refine\n")
-        runs = facade_scores.run_families(args.eval, args.scenes, campaigns=3)
-        print(facade_scores.markdown(runs, args.eval, title="Refinement: standard scene vs hard family"))
+        facade_scores.print_family_section(args, "bench_refine", 3, "Refinement: standard scene vs hard family")
 
 
 def refine_section(args) -> None:

@@ -253,6 +253,14 @@ def markdown(runs: list[SceneRun], evaluation: bool, title: str = "Standard scen
     return "\n".join(lines) + "\n"
 
 
+def print_family_section(args, bench: str, campaigns: int, title: str) -> None:
+    """The standard-vs-hard table of ``bench`` (its own heading when it is all the bench prints)."""
+    if args.family_only:
+        print(f"## {bench}\n")
+    runs = run_families(args.eval, args.scenes, campaigns=campaigns)
+    print(markdown(runs, args.eval, title=title))
+
+
 def add_arguments(ap) -> None:
     """The flags bench_facade.py and bench_refine.py share."""
     ap.add_argument("--eval", action="store_true", help="score the reserved evaluation seeds (benchmark figures)")
