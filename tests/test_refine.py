@@ -133,6 +133,39 @@ def test_window_split_by_an_old_occlusion_merges_and_its_unknown_gap_goes():
     assert unknown == []
 
 
+def test_opening_type_and_existence_follow_evidence_weight_not_campaign_count():
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (30, 30))
+    door = box(1.0, 0.0, 2.0, 2.0)
+    cells = grid.raster(door)
+    # two earlier campaigns called it a window from a grazing angle (weight 1 per cell each), the new one a door seen
+    # head-on (weight 4): 2 campaigns against 1, but 2 against 4 in evidence
+    w_old, w_new = 2 * cells.astype(int), 4 * cells.astype(int)
+    votes = _Votes(grid, w_old + w_new, np.zeros(grid.shape, int), np.full(grid.shape, 3), np.ones(grid.shape, int),
+                   np.ones(grid.shape, bool), window_new=w_new)
+    stored = [Element(3, ElementKind.WINDOW, door, None, 0.0, campaigns=[1, 2])]
+    new = [Element(0, ElementKind.DOOR, door, None, 0.0, campaigns=[3])]
+    extent = (0.0, 3.0, 0.0, 3.0)
+    fused, _ = _fuse_openings(stored, new, votes, _Ids(stored), RefineParams(), extent)
+    assert [(e.element_id, e.kind, e.campaigns) for e in fused] == [(3, ElementKind.DOOR, [1, 2, 3])]
+    # weights the other way round: the window stays a window
+    flipped = _Votes(grid, 8 * cells.astype(int) + 1 * cells, np.zeros(grid.shape, int), np.full(grid.shape, 3),
+                     np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=1 * cells.astype(int))
+    fused, _ = _fuse_openings(stored, new, flipped, _Ids(stored), RefineParams(), extent)
+    assert [e.kind for e in fused] == [ElementKind.WINDOW]
+    # existence: a window one campaign found (weight 1) where another saw wall with weight 2 is dropped; with wall
+    # weight 1 against opening weight 1 + 1 it stays
+    for wall, kept in ((2, False), (1, True)):
+        v = _Votes(grid, cells.astype(int), wall * cells.astype(int), np.full(grid.shape, 2),
+                   np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=np.zeros(grid.shape, int))
+        win = [Element(4, ElementKind.WINDOW, door, None, 0.0, campaigns=[1])]
+        if kept:
+            v = dataclasses.replace(v, window=2 * cells.astype(int))
+        fused, _ = _fuse_openings(win, [], v, _Ids(win), RefineParams(), extent)
+        assert [e.element_id for e in fused] == ([4] if kept else [])
+
+
 # ----------------------------------------------------------------------------------------------------------------------
 # The synthetic façade: a window hidden by a van in campaign 1, seen in campaign 2
 

@@ -385,7 +385,8 @@ class EvidenceParams:
         line left the façade: sky, far away).
     missed_max_incidence_deg (75.0): pulses this grazing to the wall may return nothing from a wall: no evidence.
     min_pass_pulses (1): a cell is an opening cell with at least this many pulses through the plane ...
-    max_wall_share (0.3): ... and at most this share of its pulses returned from the wall.
+    max_wall_share (0.45): ... and at most this share of its pulses returned from the wall (a flush door leaf
+        2-3 cm back with 1 cm range noise returns a third of its pulses within pass_depth of the wall).
     evidence_grow_cells (2): cells without any pulse within this many cells of an opening cell join it (scan
         lines of a far façade lie further apart than a cell; the opening's edge lies somewhere in the gap).
     opaque_share (0.7): an opening whose passing pulses came back at least this often (mean over its cells) from
@@ -416,7 +417,7 @@ class EvidenceParams:
     max_missed_pulses: int = 150
     missed_max_incidence_deg: float = 75.0
     min_pass_pulses: int = 1
-    max_wall_share: float = 0.3
+    max_wall_share: float = 0.45
     evidence_grow_cells: int = 2
     opaque_share: float = 0.7
     weight_pulses: float = 2.0

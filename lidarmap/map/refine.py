@@ -80,7 +80,7 @@ from lidarmap.map.model import Building, BuildingMap, RoofPlane
 
 __all__ = ["RefineParams", "add_aerial", "refine_facade", "assign_to_facades", "fuse_gaussians",
            "match_layers", "net_votes", "weighted_window_uncertainty", "refit_rectangle", "opening_uncertainty",
-           "pad_evidence", "roof_planes", "fuse_roofs"]
+           "pad_evidence", "roof_planes", "fuse_roofs", "weighted_kind", "outweighed_by_wall", "evidence_weight"]
 
 OPENINGS = (ElementKind.WINDOW, ElementKind.DOOR)
 
@@ -558,13 +558,57 @@ class _Votes:
     seen: np.ndarray
     seen_new: np.ndarray
     old_area: np.ndarray  # cells the façade's grid covered before this campaign grew it
+    window_new: np.ndarray | None = None  # the new campaign's own window votes (None: all votes count as old)
+
+    def window_old(self) -> np.ndarray:
+        """Window votes of the campaigns before this one."""
+        return self.window if self.window_new is None else self.window - self.window_new
+
+
+def evidence_weight(window_votes: np.ndarray, cells: np.ndarray) -> float:
+    """The opening evidence behind one shape: the sum of the window votes (per-cell weights 1-4 from
+    :func:`lidarmap.facade.evidence.vote_weights`) over its cells."""
+    return float(np.asarray(window_votes, dtype=np.float64)[cells].sum())
+
+
+def weighted_kind(kinds: list[ElementKind], weights: list[float], tie: ElementKind) -> ElementKind:
+    """Window or door by weighted vote: the kind whose shapes carry the most opening evidence (``tie`` on a tie).
+    A door seen well by one campaign outweighs a window seen at a grazing angle by two."""
+    total: dict[ElementKind, float] = {}
+    for k, w in zip(kinds, weights):
+        total[k] = total.get(k, 0.0) + float(w)
+    return max(total, key=lambda k: (total[k], k is tie))
+
+
+def outweighed_by_wall(window_votes: np.ndarray, object_votes: np.ndarray, cells: np.ndarray) -> bool:
+    """Whether the accumulated wall/object evidence over an opening's cells exceeds its opening evidence (the
+    weighted votes of all campaigns so far): such an element does not exist."""
+    if not cells.any():
+        return False
+    o = float(np.asarray(object_votes, dtype=np.float64)[cells].sum())
+    return o > float(np.asarray(window_votes, dtype=np.float64)[cells].sum())
+
+
+def _member_weights(members: list[Element], n_old: int, votes: _Votes) -> list[float]:
+    """Evidence weight of each member: stored shapes (the first ``n_old``) by the earlier campaigns' window votes
+    over their cells, the new campaign's shapes by its own; at least the campaign count, so that a shape whose
+    votes a neighbour's claimed still counts."""
+    old_w = votes.window_old()
+    new_w = votes.window if votes.window_new is None else votes.window_new
+    out = []
+    for k, m in enumerate(members):
+        cells = votes.grid.raster(m.polygon)
+        out.append(max(evidence_weight(old_w if k < n_old else new_w, cells), float(_weight(m))))
+    return out
 
 
 def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: RefineParams,
-                   extent: tuple[float, float, float, float]) -> Element | None:
+                   extent: tuple[float, float, float, float], n_old: int = 0) -> Element | None:
     """One window/door from matched shapes: vote-map refit over their edge lines, sub-cell sides averaged over the
-    shapes that proposed the chosen line (weighted by campaigns), kind by weighted vote. ``None`` when the fused
-    ε exceeds ``max_window_uncertainty`` (the campaigns saw wall across it)."""
+    shapes that proposed the chosen line (weighted by campaigns), kind by evidence-weighted vote
+    (:func:`weighted_kind`; the first ``n_old`` members are stored shapes). ``None`` when the fused ε exceeds
+    ``max_window_uncertainty`` or the wall evidence over it outweighs its opening evidence
+    (:func:`outweighed_by_wall`)."""
     g = votes.grid
     off = params.line_offsets
     bounds = np.array([[*m.polygon.bounds] for m in members])  # minx (s_lo), miny (t_lo), maxx (s_hi), maxy (t_hi)
@@ -600,11 +644,10 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     poly = box(max(s_lo, s0), max(t_lo, t0), min(s_hi, s1), min(t_hi, t1))
     if poly.is_empty or poly.area <= 0:
         return None
-    kinds: dict[ElementKind, float] = {}
-    for m, wgt in zip(members, weights):
-        kinds[m.kind] = kinds.get(m.kind, 0.0) + wgt
+    if outweighed_by_wall(votes.window, votes.objects, g.raster(poly)):
+        return None
     keeper = next((m for m in members if m.element_id == keep_id), members[0])
-    kind = max(kinds, key=lambda k: (kinds[k], k is keeper.kind))
+    kind = weighted_kind([m.kind for m in members], _member_weights(members, n_old, votes), keeper.kind)
     layered = [m for m in members if m.layer_id is not None]
     layer_id = max(layered, key=_weight).layer_id if layered else None
     campaigns = sorted({c for m in members for c in m.campaigns})
@@ -655,7 +698,7 @@ def _rescored_opening(e: Element, votes: _Votes, params: RefineParams) -> Elemen
         return e
     evidence = FacadeEvidence(g.cell, g.s0, g.t0, votes.window, votes.objects, votes.seen)
     eps = opening_uncertainty(e.polygon, evidence, params.line_offsets)
-    if eps > params.max_window_uncertainty:
+    if eps > params.max_window_uncertainty or outweighed_by_wall(votes.window, votes.objects, cells):
         return None
     return dataclasses.replace(e, uncertainty=float(eps))
 
@@ -676,12 +719,17 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
                         changed.add(e.element_id)
             continue
         keep_id = _keeper(olds).element_id if olds else ids()
-        merged = _merge_opening(olds + news, keep_id, votes, params, extent)
+        merged = _merge_opening(olds + news, keep_id, votes, params, extent, n_old=len(olds))
         if merged is not None:
             out.append(merged)
             changed.add(keep_id)
-        elif olds:  # the new shape is voted down: keep the stored ones as they were
-            out.extend(olds)
+            continue
+        for e in olds:  # the new shape is voted down: the stored ones stay unless the fused votes now drop them
+            rescored = _rescored_opening(e, votes, params)
+            if rescored is not None:
+                out.append(rescored)
+                if rescored is not e:
+                    changed.add(e.element_id)
     return out, changed
 
 
@@ -919,7 +967,8 @@ def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, po
     if obs.n_points >= params.min_element_density * seen_area:
         fused_ev = _add_evidence(old_ev, obs.evidence)
         votes = _Votes(_Grid(fused_ev.s0, fused_ev.t0, cell, fused_ev.shape), fused_ev.window_votes,
-                       fused_ev.object_votes, fused_ev.seen, obs.evidence.seen, old_area)
+                       fused_ev.object_votes, fused_ev.seen, obs.evidence.seen, old_area,
+                       window_new=obs.evidence.window_votes)
         elements = _fuse_elements(stored, obs, layer_map, votes, fparams, params, campaign_id)
     else:  # too sparse to tell openings from sampling gaps: the plane and layers only
         fused_ev, elements = old_ev, list(stored.elements)
