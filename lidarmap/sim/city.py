@@ -122,13 +122,11 @@ class City:
         return SceneMesh.concatenate([self.static, cars_soup(cars).build()]) if cars else self.static
 
 
-def build_city(params: SimParams) -> City:
-    """The deterministic city of ``params.seed`` (same seed, same city)."""
-    rng = np.random.default_rng([params.seed, 1])
-    n_streets = params.streets or (1 if params.buildings <= 10 else 2)
-    rows = _layout_rows(rng, params.buildings, n_streets)
+def _streets_and_terrain(rng: np.random.Generator, rows: dict, n_streets: int) -> tuple:
+    """Street axes, the x shift that centres every row on x = 0, the streets, the city bounds and its terrain
+    (shared by both families, so they draw from ``rng`` in the same order)."""
     street_ys = _street_positions(rows, n_streets)
-    shifts = {key: -row["length"] / 2 for key, row in rows.items()}  # centre every row on x = 0
+    shifts = {key: -row["length"] / 2 for key, row in rows.items()}
     xs = [ring[:, 0] + shifts[key] for key, row in rows.items() for ring, _ in row["rings"]]
     x_lo, x_hi = min(x.min() for x in xs), max(x.max() for x in xs)
     streets = [Street(id=s + 1, y=street_ys[s], x0=x_lo - 14.0, x1=x_hi + 14.0) for s in range(n_streets)]
@@ -136,6 +134,15 @@ def build_city(params: SimParams) -> City:
     ys = [street_ys[s] + side * (BUILDING_LINE + row["depth"]) for (s, side), row in rows.items()]
     bounds = (x_lo - margin, min(ys + street_ys) - margin, x_hi + margin, max(ys + street_ys) + margin)
     terrain = Terrain.random(rng, bounds)
+    return street_ys, shifts, streets, bounds, terrain
+
+
+def build_city(params: SimParams) -> City:
+    """The deterministic city of ``params.seed`` (same seed, same city)."""
+    rng = np.random.default_rng([params.seed, 1])
+    n_streets = params.streets or (1 if params.buildings <= 10 else 2)
+    rows = _layout_rows(rng, params.buildings, n_streets)
+    street_ys, shifts, streets, bounds, terrain = _streets_and_terrain(rng, rows, n_streets)
     buildings = _place_buildings(rng, rows, street_ys, shifts, terrain)
     trees = (_street_trees(rng, streets, terrain, params.trees_per_100m)
              + _yard_trees(rng, buildings, streets, terrain, bounds)

@@ -35,14 +35,12 @@ from lidarmap.sim.buildings import (
     row_to_local,
 )
 from lidarmap.sim.city import (
-    BUILDING_LINE,
     CRS_EPSG,
     Car,
     City,
-    Street,
     _layout_rows,
     _rotation,
-    _street_positions,
+    _streets_and_terrain,
     _street_trees,
     _yard_trees,
     cars_soup,
@@ -137,15 +135,7 @@ def build_hard_city(params: SimParams) -> HardCity:
     rng = np.random.default_rng([params.seed, 1, 18])
     n_streets = params.streets or (1 if params.buildings <= 10 else 2)
     rows = _layout_rows(rng, params.buildings, n_streets, setback=SETBACK, l_share=0.3, gap=GAP)
-    street_ys = _street_positions(rows, n_streets)
-    shifts = {key: -row["length"] / 2 for key, row in rows.items()}
-    xs = [ring[:, 0] + shifts[key] for key, row in rows.items() for ring, _ in row["rings"]]
-    x_lo, x_hi = min(x.min() for x in xs), max(x.max() for x in xs)
-    streets = [Street(id=s + 1, y=street_ys[s], x0=x_lo - 14.0, x1=x_hi + 14.0) for s in range(n_streets)]
-    margin = 25.0
-    ys = [street_ys[s] + side * (BUILDING_LINE + row["depth"]) for (s, side), row in rows.items()]
-    bounds = (x_lo - margin, min(ys + street_ys) - margin, x_hi + margin, max(ys + street_ys) + margin)
-    terrain = Terrain.random(rng, bounds)
+    street_ys, shifts, streets, bounds, terrain = _streets_and_terrain(rng, rows, n_streets)
     glass_return = (params.glass_return_min, params.glass_return_max)
     buildings = _place_buildings(rng, rows, street_ys, shifts, terrain, glass_return)
     trees = (_street_trees(rng, streets, terrain, TREES_FACTOR * params.trees_per_100m)
