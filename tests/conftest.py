@@ -68,3 +68,13 @@ def run_cli_in_process(*args: object) -> tuple[int, str, str]:
     finally:
         sys.argv = argv
     return code, out.getvalue(), err.getvalue()
+
+
+def one_line_error(code: int, err: str, *needles: str) -> None:
+    """A failed command printed exactly one line, no traceback, holding every needle."""
+    assert code != 0
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    for needle in needles:
+        assert needle in lines[0], lines[0]

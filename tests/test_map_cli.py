@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import one_line_error
 from conftest import run_cli_in_process as run
 from PIL import Image
 
@@ -25,15 +26,6 @@ from lidarmap.export.validate import validate_cityjson
 from lidarmap.io.footprints import read_footprints
 from lidarmap.io.outdir import MARKER, read_marker
 from lidarmap.map.store import MapStore, campaign_fingerprint
-
-
-def one_line_error(code: int, err: str, *needles: str) -> None:
-    assert code != 0
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, err
-    assert "Traceback" not in err
-    for needle in needles:
-        assert needle in lines[0], lines[0]
 
 
 @pytest.fixture(scope="module")

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import one_line_error
 from conftest import run_cli_in_process as run
 from shapely.geometry import Polygon
 
@@ -28,14 +29,6 @@ from lidarmap.sim.plyout import write_points_ply
 
 SEED = 6  # dev seed
 
-
-def one_line_error(code: int, err: str, *needles: str) -> None:
-    assert code != 0
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, err
-    assert "Traceback" not in err
-    for needle in needles:
-        assert needle in lines[0], lines[0]
 
 
 def _columns(n: int = 50) -> dict[str, np.ndarray]:
