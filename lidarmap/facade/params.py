@@ -391,6 +391,13 @@ class EvidenceParams:
         lines of a far façade lie further apart than a cell; the opening's edge lies somewhere in the gap).
     opaque_share (0.7): an opening whose passing pulses came back at least this often (mean over its cells) from
         just behind the wall (within layer_back) is closed by a leaf (a door; glass, rooms and dark openings less).
+    door_leaf (True): find door leaves nearly flush with the wall from their returns' depth
+        (:func:`lidarmap.facade.evidence.door_leaves`) ...
+    leaf_offset (0.012): ... a door-sized rectangle reaching the ground whose returns lie on average at least
+        this far behind the wall around it is a closed door (flush doors are 2-3 cm back; 1 cm range noise
+        averages to a few mm over a cell's returns) ...
+    leaf_band (0.08): ... the mean over the returns within this of the local wall (glass and rooms farther back
+        are openings of their own).
     weight_pulses (2.0): a campaign's vote on a cell weighs 1 + floor(pulses x cos(incidence) / weight_pulses),
         at most 4 ...
     weight_occlusion_cells (2): ... halved (at least 1) within this many cells of an occluded cell.
@@ -406,6 +413,8 @@ class EvidenceParams:
         "max_wall_share": "[0, 1]",
         "evidence_grow_cells": ">= 0",
         "opaque_share": "[0, 1]",
+        "leaf_offset": "> 0",
+        "leaf_band": "> 0",
         "weight_pulses": "> 0",
         "weight_occlusion_cells": ">= 0",
     }
@@ -420,6 +429,9 @@ class EvidenceParams:
     max_wall_share: float = 0.45
     evidence_grow_cells: int = 2
     opaque_share: float = 0.7
+    door_leaf: bool = True
+    leaf_offset: float = 0.012
+    leaf_band: float = 0.08
     weight_pulses: float = 2.0
     weight_occlusion_cells: int = 2
 
