@@ -240,3 +240,31 @@ def test_flush_door_2_cm_deep_is_found_and_typed_door():
     # without the door-leaf test the leaf reads as wall: the door is missed (what the last round measured)
     blind = extract_buildings(cloud, traj, fps, FacadeParams().updated(door_leaf=False), campaign_id=1, seed=0)
     assert _best(_openings(blind), lambda fr: _truth_rect(fr, *FLUSH_DOOR, y=WALL_Y))[0] < 0.5
+
+
+SHOP = (2.0, 5.0, 0.2, 2.7)  # a glazed shop front 3 m wide on a 0.2 m sill
+GARAGE = (8.0, 10.6, 0.0, 2.3)  # a garage door: an opaque leaf 8 cm back
+
+
+def test_glazed_shop_front_is_a_window_and_a_garage_door_a_door():
+    rng = np.random.default_rng(3)
+    speed, sensor_y, sensor_z = 8.0, 0.0, 2.5
+    xs = np.arange(-4.0, 18.0, 0.06)
+    o, v, t = _profiles(xs, sensor_y, sensor_z, speed, step_deg=0.3, yaw_deg=0.0, lo_deg=0.0, hi_deg=160.0)
+    glass = _plane(o, v, 1, WALL_Y + 0.08, SHOP[:2], SHOP[2:])
+    surfaces = {"wall": _plane(o, v, 1, WALL_Y, (0.0, 14.0), (0.0, 8.0), [SHOP, GARAGE]),
+                "ground": _plane(o, v, 2, 0.0, (-10.0, 25.0), (-10.0, WALL_Y)),
+                "glass": np.where(rng.random(len(o)) < 0.3, glass, np.inf),
+                "garage": _plane(o, v, 1, WALL_Y + 0.08, GARAGE[:2], GARAGE[2:])}
+    footprint = [[0.0, WALL_Y], [14.0, WALL_Y], [14.0, WALL_Y + 10.0], [0.0, WALL_Y + 10.0]]
+    cloud, traj, fps = _cloud(o, v, t, surfaces, {"wall": 6, "ground": 2, "glass": 6, "garage": 6}, rng, footprint,
+                              speed, sensor_y, sensor_z, xs[0], noise=0.01)
+    openings = _openings(extract_buildings(cloud, traj, fps, FacadeParams(), campaign_id=1, seed=0))
+    iou, kind = _best(openings, lambda fr: _truth_rect(fr, *SHOP, y=WALL_Y))
+    assert iou >= 0.7 and kind is ElementKind.WINDOW, (iou, kind)
+    iou, kind = _best(openings, lambda fr: _truth_rect(fr, *GARAGE, y=WALL_Y))
+    assert iou >= 0.7 and kind is ElementKind.DOOR, (iou, kind)
+    # typed by size and ground line alone (the last round's rule) the shop front was a door
+    old_rule = FacadeParams().updated(open_door_max_width=FacadeParams().openings.door_max_width)
+    openings = _openings(extract_buildings(cloud, traj, fps, old_rule, campaign_id=1, seed=0))
+    assert _best(openings, lambda fr: _truth_rect(fr, *SHOP, y=WALL_Y))[1] is ElementKind.DOOR

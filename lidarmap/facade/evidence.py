@@ -261,29 +261,32 @@ def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: fl
     ``pass_depth`` of the wall: too few cross the plane for :func:`opening_cells`). A door leaf is told from the
     wall by geometry: a rectangle of cells whose mean return depth lies at least ``leaf_offset`` behind the wall
     (joined with the opening cells around it), door-sized (``door_min_height`` tall, ``min_opening_size`` ..
-    ``door_max_width`` wide), filling ``Ta`` of its bounding box, starting within ``door_bottom_tol`` of the
+    ``door_max_width`` wide), filling ``Ta`` of its bounding box, starting within ``door_leaf_tol`` of the
     ground line and lying ``leaf_offset`` behind the wall beside and above it. Other regions are left alone: a
     blank wall with range noise never forms such a rectangle, glass and rooms are :func:`opening_cells`'."""
     p, op = params.evidence, params.openings
     out = np.zeros(hole.shape, dtype=bool)
     if not p.door_leaf or ev.offset is None:
         return out
-    behind = (ev.offset_n >= 2) & (ev.offset < -p.leaf_offset)
-    behind = ndimage.binary_closing(np.pad(behind, 1), structure=square(1))[1:-1, 1:-1] | behind
-    behind = ndimage.binary_opening(behind, structure=square(1))
-    labels, _ = ndimage.label(behind | hole)
+    known = (ev.offset_n >= 2) | hole  # cells whose returns tell wall from leaf
+    # a cell's mean is noisy (a few returns): half the offset here, the whole region must lie leaf_offset back
+    behind = ((ev.offset_n >= 2) & (ev.offset < -0.5 * p.leaf_offset)) | hole
+    # the scan lines of a far wall leave rows without returns: bridge them, never across measured wall
+    closed = ndimage.binary_closing(np.pad(behind, 2), structure=square(2))[2:-2, 2:-2]
+    behind = ndimage.binary_opening(behind | (closed & ~known), structure=square(1)) | (behind & hole)
+    labels, _ = ndimage.label(behind)
     for lab, sl in enumerate(ndimage.find_objects(labels), start=1):
         r0, r1, c0, c1 = sl[0].start, sl[0].stop, sl[1].start, sl[1].stop
         region = labels == lab
         width, height = (c1 - c0) * cell, (r1 - r0) * cell
         if height < op.door_min_height or not op.min_opening_size <= width <= op.door_max_width:
             continue
-        if region.sum() < op.Ta * (r1 - r0) * (c1 - c0):
-            continue
-        if t0 + r0 * cell > float(np.mean(ground_t[c0:c1])) + op.door_bottom_tol:
+        if (region & known).sum() < op.Ta * known[r0:r1, c0:c1].sum():
+            continue  # measured wall inside the box: not one rectangle
+        if t0 + r0 * cell > float(np.mean(ground_t[c0:c1])) + op.door_leaf_tol:  # a leaf: maybe up some steps
             continue
         leaf = region & ~hole & (ev.offset_n > 0)
-        if leaf.sum() < 0.3 * region.sum():
+        if leaf.sum() < 0.3 * (region & known).sum():
             continue  # an opening the pulses crossed: not a leaf's to settle
         k = 3
         ring = np.zeros_like(region)

@@ -301,8 +301,10 @@ def door_or_window(bounds: tuple[float, float, float, float], ground: float, mas
     """A door is at least ``door_min_height`` tall, at most ``door_max_width`` wide and starts within
     ``door_bottom_tol`` of the ground line below it, or within ``door_leaf_tol`` when it is closed by a leaf: on
     average over its cells with passing pulses, at least ``opaque_share`` of them came back from just behind the
-    wall (``opaque``: that share per cell, NaN without passing pulses; a door at the top of steps). Everything
-    else, shop windows and windows with low sills included, is a window."""
+    wall (``opaque``: that share per cell, NaN without passing pulses; a door at the top of steps). An opening
+    wider than ``open_door_max_width`` is a door only when closed by such a leaf (a garage door): glazed shop
+    fronts let most pulses through. Everything else, shop windows and windows with low sills included, is a
+    window."""
     op = params.openings
     width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
     if height < op.door_min_height or width > op.door_max_width:
@@ -310,6 +312,8 @@ def door_or_window(bounds: tuple[float, float, float, float], ground: float, mas
     share = opaque[mask] if opaque is not None else np.zeros(0)
     share = share[np.isfinite(share)]
     leaf = len(share) > 0 and float(share.mean()) >= params.evidence.opaque_share
+    if width > op.open_door_max_width and len(share) > 0 and not leaf:
+        return ElementKind.WINDOW  # wider than a door leaf and the pulses cross it: a glazed shop front
     tol = op.door_leaf_tol if leaf else op.door_bottom_tol
     return ElementKind.DOOR if bounds[2] <= ground + tol else ElementKind.WINDOW
 

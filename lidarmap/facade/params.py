@@ -293,7 +293,9 @@ class OpeningParams:
         shorter; their sills are ~1 m above the floor) ...
     ground_band (4.0): ground points up to this far in front of the wall give the ground line ...
     ground_bin (1.0): ... one low (20th percentile) height per this length along the wall.
-    door_max_width (3.5): ... and at most this wide (shop windows and glazed fronts are wider: windows).
+    door_max_width (3.5): ... and at most this wide (shop windows and glazed fronts are wider: windows) ...
+    open_door_max_width (1.8): ... and wider than this only when closed by an opaque leaf (garage doors; glazed
+        shop fronts 2-4 m wide with a sill near the ground let most pulses through: windows).
     recessed_windows (False): a rectangular region of a recessed layer (fill >= Ta, opening-sized) that is not a
         door is a WINDOW (glass with blinds or curtains returns the laser a few cm to dm behind the wall);
         False keeps it a STRUCTURE.
@@ -334,6 +336,7 @@ class OpeningParams:
         "bridge_cells": ">= 0",
         "occlusion_grow_cells": ">= 0",
         "door_max_width": ">= 0",
+        "open_door_max_width": ">= 0",
         "repetition_tol": ">= 0",
         "min_unknown_area": ">= 0",
     }
@@ -361,6 +364,7 @@ class OpeningParams:
     bridge_cells: int = 2
     occlusion_grow_cells: int = 1
     door_max_width: float = 3.5
+    open_door_max_width: float = 1.8
     recessed_windows: bool = False
     complete_by_repetition: bool = True
     repetition_tol: float = 0.2
