@@ -268,3 +268,27 @@ def test_glazed_shop_front_is_a_window_and_a_garage_door_a_door():
     old_rule = FacadeParams().updated(open_door_max_width=FacadeParams().openings.door_max_width)
     openings = _openings(extract_buildings(cloud, traj, fps, old_rule, campaign_id=1, seed=0))
     assert _best(openings, lambda fr: _truth_rect(fr, *SHOP, y=WALL_Y))[1] is ElementKind.DOOR
+
+
+def test_window_in_a_fringe_of_shadow_but_enclosed_by_wall_is_a_window():
+    """Seen at a grazing angle a window's reveals leave a fringe of occluded cells around the hole (more than
+    occlusion_touch_max of its border): wall observed just beyond every side still makes it a whole window; a hole
+    that an occluder cuts (nothing but shadow beyond one side) stays UNKNOWN."""
+    from lidarmap.facade.openings import HOLE, OBJECT, OCCLUDED, detect_openings
+
+    values = np.full((60, 50), OBJECT, dtype=np.int8)
+    values[18:38, 7:25] = OCCLUDED  # the fringe: 3 cells left and right, 2 below and above
+    values[20:36, 10:22] = HOLE  # a 1.2 m x 1.6 m window
+    ops = [op for op in detect_openings(values, 0.1, FacadeParams()) if op.n_cells > 20]
+    assert [op.kind for op in ops] == [ElementKind.WINDOW]
+    assert np.allclose(ops[0].bounds, (0.95, 2.25, 1.95, 3.65), atol=0.06), ops[0].bounds
+    values[10:50, 22:45] = OCCLUDED  # a tree hides the right of the window and all wall beyond it
+    values[20:36, 22:26] = OCCLUDED
+    ops = [op for op in detect_openings(values, 0.1, FacadeParams()) if op.n_cells > 20]
+    assert [op.kind for op in ops] == [ElementKind.UNKNOWN]
+    # without the enclosure rule the fringe alone made the first window UNKNOWN (the last round's behaviour)
+    values[10:50, 22:45] = OBJECT
+    values[18:38, 7:25] = OCCLUDED
+    values[20:36, 10:22] = HOLE
+    no_rule = FacadeParams().updated(enclosed_reach_cells=0)
+    assert [op.kind for op in detect_openings(values, 0.1, no_rule) if op.n_cells > 20] == [ElementKind.UNKNOWN]

@@ -273,7 +273,10 @@ class OpeningParams:
     max_window_uncertainty (0.5): rectangles with a larger eq. (3) ε_w are UNKNOWN.
     occlusion_touch_max (0.6): holes with more of their border occluded are UNKNOWN (mostly hidden: the
         opening may continue behind the occluder); they still vote as window evidence. Below it the visible part
-        is fitted (a sill hidden by the balcony below it costs a few cells, not the window).
+        is fitted (a sill hidden by the balcony below it costs a few cells, not the window) ...
+    enclosed_reach_cells (4): ... and a hole whose rectangle has observed wall within this many cells beyond
+        each of its four sides (along half of each side at least) is a whole opening however much of its border
+        is occluded (shadow fringes of reveals at grazing incidence).
     canny_sigma (1.0): Canny smoothing (cells).
     hough_lines (6): Hough peaks per orientation.
     hough_max_tilt_deg (2.0), hough_angle_steps (2): near-vertical/horizontal angles tried.
@@ -319,6 +322,7 @@ class OpeningParams:
         "min_opening_size": ">= 0",
         "max_window_uncertainty": ">= 0",
         "occlusion_touch_max": ">= 0",
+        "enclosed_reach_cells": ">= 0",
         "canny_sigma": ">= 0",
         "hough_lines": ">= 0",
         "hough_max_tilt_deg": ">= 0",
@@ -347,6 +351,7 @@ class OpeningParams:
     min_opening_size: float = 0.45
     max_window_uncertainty: float = 0.5
     occlusion_touch_max: float = 0.6
+    enclosed_reach_cells: int = 4
     canny_sigma: float = 1.0
     hough_lines: int = 6
     hough_max_tilt_deg: float = 2.0
