@@ -286,6 +286,9 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         # eq. (3) on this opening alone: other holes and the bridged cells are neither hole nor object
         eps = window_uncertainty_eq3(np.where(mask, HOLE, np.where(region | (work == HOLE), OCCLUDED, work)), rect)
         bounds = refine_bounds(rect, wall_st, s0, t0, cell, params)
+        # sizes count inside the façade only: a sliver under the eave is not a window reaching above the roof
+        bounds = (max(bounds[0], s0), min(bounds[1], s0 + cols * cell), max(bounds[2], t0),
+                  min(bounds[3], t0 + rows * cell))
         width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
         hidden = occ_border > params.openings.occlusion_touch_max and not enclosed_by_wall(work, rect, params)
         if hidden or eps > params.openings.max_window_uncertainty \
