@@ -306,6 +306,8 @@ class OpeningParams:
         takes the height/width of the unoccluded windows in its column/row, across occluded cells only
         (paper §2.1: façade elements repeat); eq. (3) then counts the occluded cells it covers ...
     repetition_tol (0.2): ... the windows of a column (row) have both sides within this of each other.
+    complete_behind_structures (True): a window whose lower part a structure in front hides (a balcony parapet)
+        reaches down, across the occluded rows below it, to that structure's top (at most its own height again).
     hole_open_cells (1): holes are opened by a square of this radius (removes 1-2 cell fringes of unobserved
         wall along shadow edges).
     bridge_cells (2): hole parts separated by up to 2*bridge_cells occluded cells (a pole or trunk in front
@@ -372,6 +374,7 @@ class OpeningParams:
     open_door_max_width: float = 1.8
     recessed_windows: bool = False
     complete_by_repetition: bool = True
+    complete_behind_structures: bool = True
     repetition_tol: float = 0.2
     min_unknown_area: float = 0.1
 
