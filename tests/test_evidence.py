@@ -298,7 +298,13 @@ def test_french_window_behind_a_balcony_parapet_reaches_down_to_it():
     """The parapet of a balcony (a layer in front of the wall) hides the lower part of the window above it from a
     scanner below: the window reaches down, across the occluded rows, to the parapet's top. A window whose lower
     part a car's shadow hides down to the ground keeps what was seen."""
-    from lidarmap.facade.openings import HOLE, OBJECT, OCCLUDED, complete_behind_structures, detect_openings
+    from lidarmap.facade.openings import (
+        HOLE,
+        OBJECT,
+        OCCLUDED,
+        complete_behind_structures,
+        detect_openings,
+    )
 
     values = np.full((60, 60), OBJECT, dtype=np.int8)
     front = np.zeros(values.shape, dtype=bool)

@@ -309,11 +309,10 @@ def enclosed_by_wall(values: np.ndarray, rect: tuple[int, int, int, int], params
     k = params.openings.enclosed_reach_cells
     if k <= 0:
         return False
-    rows, cols = values.shape
     r0, r1, c0, c1 = rect
     wall = values == OBJECT
-    bands = (wall[r0:r1, max(c0 - k, 0):c0], wall[r0:r1, c1:min(c1 + k, cols)],  # left, right: per row
-             wall[max(r0 - k, 0):r0, c0:c1].T, wall[r1:min(r1 + k, rows), c0:c1].T)  # below, above: per column
+    bands = (wall[r0:r1, max(c0 - k, 0):c0], wall[r0:r1, c1:c1 + k],  # left, right: per row
+             wall[max(r0 - k, 0):r0, c0:c1].T, wall[r1:r1 + k, c0:c1].T)  # below, above: per column
     return all(b.shape[0] > 0 and b.shape[1] > 0 and float(b.any(axis=1).mean()) >= 0.5 for b in bands)
 
 
@@ -428,7 +427,6 @@ def complete_behind_structures(openings: list[Opening], values: np.ndarray, fron
     shadow reaching the ground). Its uncertainty is eq. (3) of the grown rectangle. Returns how many changed.
     """
     values = np.asarray(values)
-    rows, cols = values.shape
     done = 0
     for op in openings:
         if op.kind is not ElementKind.WINDOW or op.bounds is None or op.rect is None:
