@@ -320,3 +320,22 @@ def test_french_window_behind_a_balcony_parapet_reaches_down_to_it():
     assert french.bounds[2] == pytest.approx(3.2, abs=0.05) and french.bounds[3] == pytest.approx(5.25, abs=0.06)
     assert 0.0 < french.uncertainty < 1.0
     assert other.bounds[2] == pytest.approx(2.55, abs=0.06)  # the car's shadow: unchanged
+
+
+def test_door_typing_by_size_ground_line_and_leaf():
+    """door_or_window on one opening 2.1 m tall on the ground line (0.1 m above it): 0.9 m wide a door, 0.6 m wide
+    a window (too narrow for a leaf); 2.6 m wide a door only when a leaf closes it (a garage), else a shop front."""
+    from lidarmap.facade.openings import door_or_window
+
+    params = FacadeParams()
+    mask = np.ones((21, 26), dtype=bool)
+    shut, glazed = np.ones(mask.shape), np.full(mask.shape, 0.3)
+
+    def kind(width: float, opaque) -> ElementKind:
+        return door_or_window((0.0, width, 0.1, 2.2), 0.0, mask, opaque, params)
+
+    assert kind(0.9, shut) is ElementKind.DOOR and kind(0.9, glazed) is ElementKind.DOOR
+    assert kind(0.6, shut) is ElementKind.WINDOW
+    assert kind(2.6, shut) is ElementKind.DOOR and kind(2.6, glazed) is ElementKind.WINDOW
+    assert door_or_window((0.0, 0.9, 0.9, 3.0), 0.0, mask, glazed, params) is ElementKind.WINDOW  # a 0.9 m sill
+    assert door_or_window((0.0, 0.9, 0.9, 3.0), 0.0, mask, shut, params) is ElementKind.DOOR  # a leaf up the steps

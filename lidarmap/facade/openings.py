@@ -318,7 +318,7 @@ def enclosed_by_wall(values: np.ndarray, rect: tuple[int, int, int, int], params
 
 def door_or_window(bounds: tuple[float, float, float, float], ground: float, mask: np.ndarray,
                    opaque: np.ndarray | None, params: FacadeParams) -> ElementKind:
-    """A door is at least ``door_min_height`` tall, at most ``door_max_width`` wide and starts within
+    """A door is at least ``door_min_height`` tall, ``door_min_width`` .. ``door_max_width`` wide and starts within
     ``door_bottom_tol`` of the ground line below it, or within ``door_leaf_tol`` when it is closed by a leaf: on
     average over its cells with passing pulses (those 2 cells or more inside its border: reveals catch pulses
     along the border of an open window), at least ``opaque_share`` of them came back from just behind the
@@ -328,7 +328,7 @@ def door_or_window(bounds: tuple[float, float, float, float], ground: float, mas
     window."""
     op = params.openings
     width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
-    if height < op.door_min_height or width > op.door_max_width:
+    if height < op.door_min_height or not op.door_min_width <= width <= op.door_max_width:
         return ElementKind.WINDOW
     # a leaf closes the whole opening; the reveals of an open window catch pulses along its border only
     core = ndimage.binary_erosion(mask, structure=np.ones((5, 5), dtype=bool))
