@@ -455,3 +455,21 @@ def test_a_window_found_in_part_takes_the_sides_of_the_stored_unknown_region_it_
     assert len(fused) == 1 and polygon_iou(fused[0].polygon, window) >= 0.9, fused[0].polygon.bounds
     alone, _ = _fuse_openings([], new, votes, _Ids(unknown), RefineParams(), extent)  # the strip, as before
     assert len(alone) == 1 and polygon_iou(alone[0].polygon, window) < 0.5
+
+
+def test_a_sliver_cut_by_the_facade_extent_is_not_an_opening():
+    """A new window found across the top of the façade's extent (under the eave) keeps 0.15 m inside it: below
+    min_opening_size, it is dropped; the same window inside the extent stays."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    for top, kept in ((3.15, False), (2.0, True)):
+        shape = box(1.0, top - 0.6, 1.6, top)
+        cells = grid.raster(shape)
+        votes = _Votes(grid, cells.astype(int), (~cells).astype(int), np.ones(grid.shape, int),
+                       np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=cells.astype(int))
+        new = [Element(0, ElementKind.WINDOW, shape, None, 0.0, campaigns=[2])]
+        fused, _ = _fuse_openings([], new, votes, _Ids([]), RefineParams(), (0.0, 4.0, 0.0, 2.7), [], 0.45)
+        assert len(fused) == (1 if kept else 0), [e.polygon.bounds for e in fused]
+        unchecked, _ = _fuse_openings([], new, votes, _Ids([]), RefineParams(), (0.0, 4.0, 0.0, 2.7), [], 0.0)
+        assert len(unchecked) == 1  # without the size check the sliver was stored (the last round's behaviour)

@@ -604,13 +604,14 @@ def _member_weights(members: list[Element], n_old: int, votes: _Votes) -> list[f
 
 def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: RefineParams,
                    extent: tuple[float, float, float, float], n_old: int = 0,
-                   extra_bounds: np.ndarray | None = None) -> Element | None:
+                   extra_bounds: np.ndarray | None = None, min_size: float = 0.0) -> Element | None:
     """One window/door from matched shapes: vote-map refit over their edge lines, sub-cell sides averaged over the
     shapes that proposed the chosen line (weighted by campaigns), kind by evidence-weighted vote
     (:func:`weighted_kind`; the first ``n_old`` members are stored shapes). ``None`` when the fused ε exceeds
     ``max_window_uncertainty`` or the wall evidence over it outweighs its opening evidence
     (:func:`outweighed_by_wall`). ``extra_bounds`` (rows of s_lo, t_lo, s_hi, t_hi): more candidate sides, from
-    stored unknown regions the shapes lie in."""
+    stored unknown regions the shapes lie in. ``None`` too when a side of the fused rectangle, cut to the extent,
+    is shorter than ``min_size``."""
     g = votes.grid
     off = params.line_offsets
     bounds = np.array([[*m.polygon.bounds] for m in members])  # minx (s_lo), miny (t_lo), maxx (s_hi), maxy (t_hi)
@@ -647,6 +648,9 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     poly = box(max(s_lo, s0), max(t_lo, t0), min(s_hi, s1), min(t_hi, t1))
     if poly.is_empty or poly.area <= 0:
         return None
+    b = poly.bounds
+    if min(b[2] - b[0], b[3] - b[1]) < min_size:
+        return None  # a sliver (under the eave, beyond the façade's extent): not an opening of this façade
     if outweighed_by_wall(votes.window, votes.objects, g.raster(poly)):
         return None
     keeper = next((m for m in members if m.element_id == keep_id), members[0])
@@ -717,10 +721,10 @@ def _unknown_bounds(shapes: list[Element], unknown: list[Element]) -> np.ndarray
 
 def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _Ids, params: RefineParams,
                    extent: tuple[float, float, float, float],
-                   unknown: list[Element] | None = None) -> tuple[list[Element], set[int]]:
+                   unknown: list[Element] | None = None, min_size: float = 0.0) -> tuple[list[Element], set[int]]:
     """Windows and doors after the fusion, and the ids of those that changed (merged, added or re-scored). A new
     shape without a stored match may take the sides of a stored ``unknown`` region it lies in
-    (:func:`_unknown_bounds`)."""
+    (:func:`_unknown_bounds`); a fused shape with a side below ``min_size`` is dropped."""
     out: list[Element] = []
     changed: set[int] = set()
     for oi, ni in _clusters(old, new, lambda e: "opening", params):
@@ -735,7 +739,8 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
             continue
         keep_id = _keeper(olds).element_id if olds else ids()
         extra = None if olds or not unknown else _unknown_bounds(news, unknown)
-        merged = _merge_opening(olds + news, keep_id, votes, params, extent, n_old=len(olds), extra_bounds=extra)
+        merged = _merge_opening(olds + news, keep_id, votes, params, extent, n_old=len(olds), extra_bounds=extra,
+                                min_size=min_size)
         if merged is not None:
             out.append(merged)
             changed.add(keep_id)
@@ -886,7 +891,8 @@ def _fuse_elements(stored: Facade, obs: Facade, layer_map: dict[int, int], votes
         return [e for e in elements if e.kind in kinds and not e.is_unknown]
 
     openings, changed = _fuse_openings(of(stored.elements, *OPENINGS), of(new, *OPENINGS), votes, ids, params,
-                                       obs.extent, [e for e in stored.elements if e.is_unknown])
+                                       obs.extent, [e for e in stored.elements if e.is_unknown],
+                                       fparams.openings.min_opening_size)
     min_area = fparams.objects.min_object_area
     structures, changed_s = _fuse_structures(of(stored.elements, ElementKind.STRUCTURE),
                                              of(new, ElementKind.STRUCTURE), votes, ids, params, min_area)
