@@ -403,3 +403,34 @@ def test_aerial_roofs_fused_into_the_buildings(sim_city):
     again = add_aerial(second, als.subset(~half), fps, RefineParams(), campaign_id=11)
     assert all(r.n_points == s.n_points for b in second.buildings for r, s in
                zip(second.buildings[b].roofs, again.buildings[b].roofs))
+
+
+def test_a_worse_later_campaign_does_not_lower_a_well_observed_opening():
+    """A window seen head-on (weight 4 per cell) stays, whole, when later campaigns from a grazing angle (weight 1)
+    read it as wall or find only its upper half: fusion weighs evidence, not campaigns."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    window, upper = box(1.0, 1.0, 2.2, 2.8), box(1.0, 1.9, 2.2, 2.8)
+    cells, upper_cells = grid.raster(window), grid.raster(upper)
+    w_first, o_first = 4 * cells.astype(int), 4 * (~cells).astype(int)
+    stored = [Element(3, ElementKind.WINDOW, window, None, 0.0, campaigns=[1])]
+    extent = (0.0, 4.0, 0.0, 4.0)
+    # three grazing campaigns after it saw wall where the window is (weight 1 each) and found nothing there
+    wall = 3 * cells.astype(int)
+    votes = _Votes(grid, w_first, o_first + wall, np.full(grid.shape, 4), np.ones(grid.shape, int),
+                   np.ones(grid.shape, bool), window_new=np.zeros(grid.shape, int))
+    fused, _ = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), extent)
+    assert [(e.element_id, e.kind) for e in fused] == [(3, ElementKind.WINDOW)]
+    # one grazing campaign found only the upper half (the lower half read as wall, weight 1): still the whole window
+    w_new = upper_cells.astype(int)
+    votes = _Votes(grid, w_first + w_new, o_first + (cells & ~upper_cells).astype(int), np.full(grid.shape, 2),
+                   np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=w_new)
+    new = [Element(0, ElementKind.WINDOW, upper, None, 0.1, campaigns=[2])]
+    fused, _ = _fuse_openings(stored, new, votes, _Ids(stored), RefineParams(), extent)
+    assert len(fused) == 1 and fused[0].kind is ElementKind.WINDOW and fused[0].campaigns == [1, 2]
+    assert polygon_iou(fused[0].polygon, window) >= 0.9, fused[0].polygon.bounds
+    # ... and one that called it a door with that little evidence does not retype it
+    new = [Element(0, ElementKind.DOOR, upper, None, 0.1, campaigns=[2])]
+    fused, _ = _fuse_openings(stored, new, votes, _Ids(stored), RefineParams(), extent)
+    assert [e.kind for e in fused] == [ElementKind.WINDOW]

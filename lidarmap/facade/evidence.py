@@ -40,6 +40,8 @@ class CellEvidence:
     missed: np.ndarray  # pulses that crossed the plane there and returned nothing
     cos_incidence: np.ndarray  # mean |cos| of the angle between those pulses and the wall normal (0: no pulse)
     pulse_order: bool = True  # whether GPS times ordered the pulses (else ``missed`` could not be counted)
+    offset: np.ndarray | None = None  # mean depth of the returns near the wall relative to it (NaN: none)
+    offset_n: np.ndarray | None = None  # how many returns that mean is over
 
     @property
     def passed(self) -> np.ndarray:
@@ -232,6 +234,69 @@ def opening_cells(ev: CellEvidence, params: FacadeParams) -> np.ndarray:
     if k > 0 and hole.any():  # the edge lies somewhere between the last pulse through and the first on the wall
         hole |= ndimage.binary_dilation(hole, structure=square(k)) & (pulses == 0)
     return hole
+
+
+def wall_offset(s: np.ndarray, t: np.ndarray, rel: np.ndarray, shape: tuple[int, int], s0: float, t0: float,
+                cell: float, band: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per cell the mean depth, relative to the local wall, of the returns within ``band`` of it (NaN: none) and
+    their count. Range noise of a few mm averages out over a cell's returns: a leaf 2 cm behind the wall shows."""
+    near = np.abs(rel) <= band
+    n = _count(s[near], t[near], shape, s0, t0, cell)
+    total = _count(s[near], t[near], shape, s0, t0, cell, rel[near])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, total / np.maximum(n, 1), np.nan), n
+
+
+def _mean_offset(ev: CellEvidence, cells: np.ndarray) -> float:
+    """Return-weighted mean wall offset over ``cells`` (NaN without returns)."""
+    n = ev.offset_n[cells]
+    if n.sum() <= 0:
+        return float("nan")
+    return float(np.nansum(ev.offset[cells] * n) / n.sum())
+
+
+def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: float, cell: float,
+                params: FacadeParams) -> np.ndarray:
+    """Cells of door leaves nearly flush with the wall (a flush door 2-3 cm back returns most of its pulses within
+    ``pass_depth`` of the wall: too few cross the plane for :func:`opening_cells`). A door leaf is told from the
+    wall by geometry: a rectangle of cells whose mean return depth lies at least ``leaf_offset`` behind the wall
+    (joined with the opening cells around it), door-sized (``door_min_height`` tall, ``min_opening_size`` ..
+    ``door_max_width`` wide), filling ``Ta`` of its bounding box, starting within ``door_leaf_tol`` of the
+    ground line and lying ``leaf_offset`` behind the wall beside and above it. Other regions are left alone: a
+    blank wall with range noise never forms such a rectangle, glass and rooms are :func:`opening_cells`'."""
+    p, op = params.evidence, params.openings
+    out = np.zeros(hole.shape, dtype=bool)
+    if not p.door_leaf or ev.offset is None:
+        return out
+    known = (ev.offset_n >= 2) | hole  # cells whose returns tell wall from leaf
+    # a cell's mean is noisy (a few returns): half the offset here, the whole region must lie leaf_offset back
+    behind = ((ev.offset_n >= 2) & (ev.offset < -0.5 * p.leaf_offset)) | hole
+    # the scan lines of a far wall leave rows without returns: bridge them, never across measured wall
+    closed = ndimage.binary_closing(np.pad(behind, 2), structure=square(2))[2:-2, 2:-2]
+    behind = ndimage.binary_opening(behind | (closed & ~known), structure=square(1)) | (behind & hole)
+    labels, _ = ndimage.label(behind)
+    for lab, sl in enumerate(ndimage.find_objects(labels), start=1):
+        r0, r1, c0, c1 = sl[0].start, sl[0].stop, sl[1].start, sl[1].stop
+        region = labels == lab
+        width, height = (c1 - c0) * cell, (r1 - r0) * cell
+        if height < op.door_min_height or not op.min_opening_size <= width <= op.door_max_width:
+            continue
+        if (region & known).sum() < op.Ta * known[r0:r1, c0:c1].sum():
+            continue  # measured wall inside the box: not one rectangle
+        if t0 + r0 * cell > float(np.mean(ground_t[c0:c1])) + op.door_leaf_tol:  # a leaf: maybe up some steps
+            continue
+        leaf = region & ~hole & (ev.offset_n > 0)
+        if leaf.sum() < 0.3 * (region & known).sum():
+            continue  # an opening the pulses crossed: not a leaf's to settle
+        k = 3
+        ring = np.zeros_like(region)
+        ring[max(r0 - k, 0):r1 + k, max(c0 - k, 0):c1 + k] = True
+        ring[:r0] = False  # not below the door: the ground, a step
+        ring &= ~ndimage.binary_dilation(region) & ~hole
+        if not (_mean_offset(ev, leaf) - _mean_offset(ev, ring) <= -p.leaf_offset):
+            continue
+        out |= region
+    return out
 
 
 def recessed_share(ev: CellEvidence) -> np.ndarray:

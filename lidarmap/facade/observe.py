@@ -32,15 +32,18 @@ from lidarmap.facade.campaign import CampaignData
 from lidarmap.facade.evidence import (
     CellEvidence,
     cell_evidence,
+    door_leaves,
     local_wall_depth,
     missed_pulse_crossings,
     opening_cells,
     recessed_share,
     vote_weights,
+    wall_offset,
 )
 from lidarmap.facade.layers import (
     DepthGrid,
     assign_layers,
+    cell_index,
     close_sampling_gaps,
     depth_grid,
     fit_layers,
@@ -387,6 +390,7 @@ class _Visibility:
     unsampled: np.ndarray  # cells no pulse reached although nothing hid them: not observed, not an occlusion
     weights: np.ndarray  # the campaign's vote weight per cell (1..4)
     opaque: np.ndarray | None = None  # share of the passing pulses returned just behind the wall (NaN: none)
+    leaves: np.ndarray | None = None  # cells of door leaves nearly flush with the wall (their returns are no wall)
 
 
 def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens: np.ndarray, around: np.ndarray,
@@ -415,6 +419,8 @@ def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens:
     ev = cell_evidence(surf.sdt[on_wall], sens_sdt[on_wall], behind_sdt, behind_sens, is_deep,
                        missed if missed is not None else (np.zeros(0),) * 3, shape, s0, t0, cell)
     ev.pulse_order = missed is not None
+    ev.offset, ev.offset_n = wall_offset(surf.sdt[inside, 0], surf.sdt[inside, 1], rel[inside], shape, s0, t0,
+                                         cell, params.evidence.leaf_band)
     return ev
 
 
@@ -440,15 +446,17 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
         log.warning("%s: GPS times do not order the pulses of a scan line (one time per line?); openings are read "
                     "from unobserved cells (the paper's rule)", camp.source or "campaign")
     passed = opening_cells(ev, params) if ray else through
-    observed = surf.observed & ~(passed if ray else (through & ~surf.observed_raw))
-    if params.openings.occlusion_grow_cells > 0:
-        grow = square(params.openings.occlusion_grow_cells)
-        occluded = occluded | (ndimage.binary_dilation(occluded, structure=grow) & ~observed & ~passed)
     ground_t = _ground_line(camp, frame, s0, s1, t0, shape[1], cell, params)
     # the ground is never above the lowest wall measured in a column
     raw = surf.observed_raw
     lowest = np.where(raw.any(axis=0), t0 + np.argmax(raw, axis=0) * cell, np.inf)
     ground_t = np.minimum(ground_t, lowest)
+    leaves = door_leaves(ev, passed, ground_t, t0, cell, params) if ray else np.zeros(shape, dtype=bool)
+    passed = passed | leaves
+    observed = surf.observed & ~(passed if ray else (through & ~surf.observed_raw))
+    if params.openings.occlusion_grow_cells > 0:
+        grow = square(params.openings.occlusion_grow_cells)
+        occluded = occluded | (ndimage.binary_dilation(occluded, structure=grow) & ~observed & ~passed)
     t_centres = t0 + (np.arange(shape[0]) + 0.5) * cell
     below = (t_centres[:, None] < ground_t[None, :] - 0.5 * cell) & ~raw
     hidden = occluded | ~reachable | below
@@ -458,8 +466,12 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
         hidden = hidden | unsampled
     values = value_grid(observed, hidden, passed)
     weights = vote_weights(ev, occluded, params)
+    opaque = None
+    if ray:
+        opaque = recessed_share(ev)
+        opaque[leaves] = 1.0  # a leaf returns every pulse, a few on the wall's side of pass_depth
     return _Visibility(values=values, ground_t=ground_t, below=below, unsampled=unsampled, weights=weights,
-                       opaque=recessed_share(ev) if ray else None)
+                       opaque=opaque, leaves=leaves)
 
 
 class _Elements:
@@ -553,6 +565,9 @@ def _hole_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: F
     cell = surf.cell
     s0, s1, t0, t1 = surf.extent
     wall_st = surf.sdt[surf.labels == surf.main_idx, :2]
+    if vis.leaves is not None and vis.leaves.any():  # a flush leaf's returns are on the main layer, not wall
+        row, col = cell_index(wall_st[:, 0], wall_st[:, 1], cell, s0, t0, surf.shape)
+        wall_st = wall_st[(row < 0) | ~vis.leaves[row, col]]
     openings = detect_openings(vis.values, cell, params, ground_t=vis.ground_t, t0=t0, s0=s0, wall_st=wall_st,
                                opaque=vis.opaque)
     if params.openings.complete_by_repetition:

@@ -236,7 +236,8 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
 
     * fewer hole cells than ``min_hole_area``: ignored (sampling gaps);
     * touching the left, right or top border of the grid, larger than ``max_opening_area``, more than
-      ``occlusion_touch_max`` of its border occluded, fill ratio below ``Ta``, rectangle ε_w above
+      ``occlusion_touch_max`` of its border occluded (unless wall encloses it: :func:`enclosed_by_wall`), fill
+      ratio below ``Ta``, rectangle ε_w above
       ``max_window_uncertainty`` or a side below ``min_opening_size``: UNKNOWN (uncertainty inf);
     * door-sized and reaching the ground (:func:`door_or_window`; ``ground_t``: ground height per grid column in
       façade t, default: the grid's bottom edge ``t0``; ``opaque``: share of passing pulses back from just behind):
@@ -286,9 +287,10 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         eps = window_uncertainty_eq3(np.where(mask, HOLE, np.where(region | (work == HOLE), OCCLUDED, work)), rect)
         bounds = refine_bounds(rect, wall_st, s0, t0, cell, params)
         width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
-        if occ_border > params.openings.occlusion_touch_max or eps > params.openings.max_window_uncertainty \
+        hidden = occ_border > params.openings.occlusion_touch_max and not enclosed_by_wall(work, rect, params)
+        if hidden or eps > params.openings.max_window_uncertainty \
                 or min(width, height) < params.openings.min_opening_size:
-            unknown.rect = rect if occ_border > params.openings.occlusion_touch_max else None
+            unknown.rect = rect if hidden else None
             out.append(unknown)
             continue
         kind = door_or_window(bounds, float(np.mean(ground[rect[2]:rect[3]])), mask, opaque, params)
@@ -296,13 +298,31 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
     return out
 
 
+def enclosed_by_wall(values: np.ndarray, rect: tuple[int, int, int, int], params: FacadeParams) -> bool:
+    """Whether wall (OBJECT cells) was observed beyond every side of a rectangle (r0, r1, c0, c1): within
+    ``enclosed_reach_cells`` outside the side, along at least half of its length. A hole whose border is mostly
+    occluded (shadow fringes of reveals and frames at grazing incidence, the ends of scan lines) but that wall
+    closes on all four sides is a whole opening, not the visible part of one that continues behind an occluder."""
+    k = params.openings.enclosed_reach_cells
+    if k <= 0:
+        return False
+    rows, cols = values.shape
+    r0, r1, c0, c1 = rect
+    wall = values == OBJECT
+    bands = (wall[r0:r1, max(c0 - k, 0):c0], wall[r0:r1, c1:min(c1 + k, cols)],  # left, right: per row
+             wall[max(r0 - k, 0):r0, c0:c1].T, wall[r1:min(r1 + k, rows), c0:c1].T)  # below, above: per column
+    return all(b.shape[0] > 0 and b.shape[1] > 0 and float(b.any(axis=1).mean()) >= 0.5 for b in bands)
+
+
 def door_or_window(bounds: tuple[float, float, float, float], ground: float, mask: np.ndarray,
                    opaque: np.ndarray | None, params: FacadeParams) -> ElementKind:
     """A door is at least ``door_min_height`` tall, at most ``door_max_width`` wide and starts within
     ``door_bottom_tol`` of the ground line below it, or within ``door_leaf_tol`` when it is closed by a leaf: on
     average over its cells with passing pulses, at least ``opaque_share`` of them came back from just behind the
-    wall (``opaque``: that share per cell, NaN without passing pulses; a door at the top of steps). Everything
-    else, shop windows and windows with low sills included, is a window."""
+    wall (``opaque``: that share per cell, NaN without passing pulses; a door at the top of steps). An opening
+    wider than ``open_door_max_width`` is a door only when closed by such a leaf (a garage door): glazed shop
+    fronts let most pulses through. Everything else, shop windows and windows with low sills included, is a
+    window."""
     op = params.openings
     width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
     if height < op.door_min_height or width > op.door_max_width:
@@ -310,6 +330,8 @@ def door_or_window(bounds: tuple[float, float, float, float], ground: float, mas
     share = opaque[mask] if opaque is not None else np.zeros(0)
     share = share[np.isfinite(share)]
     leaf = len(share) > 0 and float(share.mean()) >= params.evidence.opaque_share
+    if width > op.open_door_max_width and len(share) > 0 and not leaf:
+        return ElementKind.WINDOW  # wider than a door leaf and the pulses cross it: a glazed shop front
     tol = op.door_leaf_tol if leaf else op.door_bottom_tol
     return ElementKind.DOOR if bounds[2] <= ground + tol else ElementKind.WINDOW
 

@@ -273,7 +273,10 @@ class OpeningParams:
     max_window_uncertainty (0.5): rectangles with a larger eq. (3) ε_w are UNKNOWN.
     occlusion_touch_max (0.6): holes with more of their border occluded are UNKNOWN (mostly hidden: the
         opening may continue behind the occluder); they still vote as window evidence. Below it the visible part
-        is fitted (a sill hidden by the balcony below it costs a few cells, not the window).
+        is fitted (a sill hidden by the balcony below it costs a few cells, not the window) ...
+    enclosed_reach_cells (4): ... and a hole whose rectangle has observed wall within this many cells beyond
+        each of its four sides (along half of each side at least) is a whole opening however much of its border
+        is occluded (shadow fringes of reveals at grazing incidence).
     canny_sigma (1.0): Canny smoothing (cells).
     hough_lines (6): Hough peaks per orientation.
     hough_max_tilt_deg (2.0), hough_angle_steps (2): near-vertical/horizontal angles tried.
@@ -293,7 +296,9 @@ class OpeningParams:
         shorter; their sills are ~1 m above the floor) ...
     ground_band (4.0): ground points up to this far in front of the wall give the ground line ...
     ground_bin (1.0): ... one low (20th percentile) height per this length along the wall.
-    door_max_width (3.5): ... and at most this wide (shop windows and glazed fronts are wider: windows).
+    door_max_width (3.5): ... and at most this wide (shop windows and glazed fronts are wider: windows) ...
+    open_door_max_width (1.8): ... and wider than this only when closed by an opaque leaf (garage doors; glazed
+        shop fronts 2-4 m wide with a sill near the ground let most pulses through: windows).
     recessed_windows (False): a rectangular region of a recessed layer (fill >= Ta, opening-sized) that is not a
         door is a WINDOW (glass with blinds or curtains returns the laser a few cm to dm behind the wall);
         False keeps it a STRUCTURE.
@@ -317,6 +322,7 @@ class OpeningParams:
         "min_opening_size": ">= 0",
         "max_window_uncertainty": ">= 0",
         "occlusion_touch_max": ">= 0",
+        "enclosed_reach_cells": ">= 0",
         "canny_sigma": ">= 0",
         "hough_lines": ">= 0",
         "hough_max_tilt_deg": ">= 0",
@@ -334,6 +340,7 @@ class OpeningParams:
         "bridge_cells": ">= 0",
         "occlusion_grow_cells": ">= 0",
         "door_max_width": ">= 0",
+        "open_door_max_width": ">= 0",
         "repetition_tol": ">= 0",
         "min_unknown_area": ">= 0",
     }
@@ -344,6 +351,7 @@ class OpeningParams:
     min_opening_size: float = 0.45
     max_window_uncertainty: float = 0.5
     occlusion_touch_max: float = 0.6
+    enclosed_reach_cells: int = 4
     canny_sigma: float = 1.0
     hough_lines: int = 6
     hough_max_tilt_deg: float = 2.0
@@ -361,6 +369,7 @@ class OpeningParams:
     bridge_cells: int = 2
     occlusion_grow_cells: int = 1
     door_max_width: float = 3.5
+    open_door_max_width: float = 1.8
     recessed_windows: bool = False
     complete_by_repetition: bool = True
     repetition_tol: float = 0.2
@@ -391,6 +400,13 @@ class EvidenceParams:
         lines of a far façade lie further apart than a cell; the opening's edge lies somewhere in the gap).
     opaque_share (0.7): an opening whose passing pulses came back at least this often (mean over its cells) from
         just behind the wall (within layer_back) is closed by a leaf (a door; glass, rooms and dark openings less).
+    door_leaf (True): find door leaves nearly flush with the wall from their returns' depth
+        (:func:`lidarmap.facade.evidence.door_leaves`) ...
+    leaf_offset (0.012): ... a door-sized rectangle reaching the ground whose returns lie on average at least
+        this far behind the wall around it is a closed door (flush doors are 2-3 cm back; 1 cm range noise
+        averages to a few mm over a cell's returns) ...
+    leaf_band (0.08): ... the mean over the returns within this of the local wall (glass and rooms farther back
+        are openings of their own).
     weight_pulses (2.0): a campaign's vote on a cell weighs 1 + floor(pulses x cos(incidence) / weight_pulses),
         at most 4 ...
     weight_occlusion_cells (2): ... halved (at least 1) within this many cells of an occluded cell.
@@ -406,6 +422,8 @@ class EvidenceParams:
         "max_wall_share": "[0, 1]",
         "evidence_grow_cells": ">= 0",
         "opaque_share": "[0, 1]",
+        "leaf_offset": "> 0",
+        "leaf_band": "> 0",
         "weight_pulses": "> 0",
         "weight_occlusion_cells": ">= 0",
     }
@@ -420,6 +438,9 @@ class EvidenceParams:
     max_wall_share: float = 0.45
     evidence_grow_cells: int = 2
     opaque_share: float = 0.7
+    door_leaf: bool = True
+    leaf_offset: float = 0.012
+    leaf_band: float = 0.08
     weight_pulses: float = 2.0
     weight_occlusion_cells: int = 2
 
