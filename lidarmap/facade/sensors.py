@@ -348,6 +348,7 @@ def widen_layers(facades: list, factor: float) -> list:
 #: Pseudo-seconds per pulse of the clock of a path estimated without GPS time (a 100 kHz profiler's pulse period):
 #: the clock only orders the pulses and counts the missed ones; its scale sets the ray evidence's travel window.
 PULSE_SECONDS = 1e-5
+END_MARGIN = 8.0  # m at either end of a path where its direction is not trusted for the stripes' yaw
 MAX_YAW = 60.0  # degrees: steeper stripes are the spacing between profiles, not a profile
 NADIR = 1.5  # m across the path within which the two heads' ground lines meet: links there are not trusted
 LAGS = 40  # a return's predecessor on its own head's scan line is among the previous LAGS returns of the file
@@ -360,6 +361,8 @@ def profile_slopes(path: SensorLine, ground: np.ndarray, params: SensorParams) -
     or two when a second peak at least ``second_head`` x the first lies more than 15° from it (crossed heads)."""
     s, c = path.project(ground[:, :2])
     near = (np.abs(c) > 0.5) & (np.abs(c) < params.stripe_reach)
+    if path.s[-1] > 4 * END_MARGIN:  # the path's ends are continued straight, their frame bent: not measured there
+        near &= (s > path.s[0] + END_MARGIN) & (s < path.s[-1] - END_MARGIN)
     pts = np.column_stack([s[near], c[near]])
     if len(pts) < 100:
         return np.zeros(1)
@@ -419,6 +422,14 @@ def scan_heads(xyz: np.ndarray, s: np.ndarray, c: np.ndarray, slopes: np.ndarray
     np.add.at(tally, (chain[a[voted]], vote[voted]), 1.0)
     has = tally.sum(axis=1) > 0
     label = np.where(has, np.argmax(tally, axis=1), -1)
+    heads = label[chain]
+    # a chain without a vote (a wall whose foot the scan line did not reach): the two heads fire together, so the
+    # file's returns next to its returns that belong to another, labelled chain are the other head's
+    for other in (np.arange(n - 1), np.arange(1, n)):
+        mine = other + 1 if other[0] == 0 else other - 1
+        ok = (heads[mine] < 0) & (heads[other] >= 0) & (chain[mine] != chain[other])
+        np.add.at(tally, (chain[mine[ok]], 1 - heads[other[ok]]), 1.0)
+    label = np.where(tally.sum(axis=1) > 0, np.argmax(tally, axis=1), -1)
     return label[chain]
 
 
