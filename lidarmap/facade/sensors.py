@@ -400,11 +400,14 @@ def scan_heads(xyz: np.ndarray, s: np.ndarray, c: np.ndarray, slopes: np.ndarray
     best = np.full(n, np.inf)
     pred = np.full(n, -1, dtype=np.int64)
     r = np.maximum(np.hypot(c, xyz[:, 2] - np.median(xyz[:, 2])), 1.0)
+    active = np.arange(n)
     for lag in range(1, LAGS + 1):
-        dist = np.full(n, np.inf)
-        dist[lag:] = np.linalg.norm(xyz[lag:] - xyz[:-lag], axis=1) / r[lag:]
-        better = dist < best
-        best[better], pred[better] = dist[better], np.flatnonzero(better) - lag
+        if lag == 5:  # most returns have found the next pulse of their line by now: only the others look farther
+            active = active[best[active] > 0.05]
+        ids = active[active >= lag]
+        dist = np.linalg.norm(xyz[ids] - xyz[ids - lag], axis=1) / r[ids]
+        better = dist < best[ids]
+        best[ids[better]], pred[ids[better]] = dist[better], ids[better] - lag
     linked = np.flatnonzero(best < 0.2)
     a, b = linked, pred[linked]
     ds, dc, dz = s[a] - s[b], c[a] - c[b], xyz[a, 2] - xyz[b, 2]
@@ -453,6 +456,7 @@ class PulseClock:
     step: float | None = None
     adjacent_share: float = 1.0
     _carry: dict = dataclasses.field(default_factory=dict)
+    _heads: dict = dataclasses.field(default_factory=dict)
 
     @property
     def heads(self) -> int:
@@ -466,7 +470,10 @@ class PulseClock:
         if first == 0:
             self._carry = {}
         s, c = self.path.project(xyz[:, :2])
-        head = scan_heads(xyz, s, c, self.slopes)
+        key = (first, len(xyz))
+        if key not in self._heads:  # every pass over the file finds the same heads: found once (1 byte a return)
+            self._heads[key] = scan_heads(xyz, s, c, self.slopes).astype(np.int8)
+        head = self._heads[key].astype(np.int64)
         slope = np.append(self.slopes, 0.0)[head]
         s_sensor = np.clip(s - slope * c, self.path.s[0], self.path.s[-1])
         origin = self.path.at(s_sensor)
