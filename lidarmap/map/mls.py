@@ -21,12 +21,15 @@ import numpy as np
 from lidarmap.core import Footprints, PointCloud, Trajectory
 from lidarmap.errors import InputError
 from lidarmap.facade.sensors import (
+    PulseClock,
     SensorParams,
     estimate_path,
+    ground_points,
     knots_trajectory,
     origin_knots,
     path_times,
     path_trajectory,
+    profile_slopes,
     timed_path,
 )
 from lidarmap.io.ply import ORIGIN_FIELDS
@@ -40,6 +43,10 @@ from lidarmap.io.trajectory import read_trajectory
 from lidarmap.map.update import CampaignSource
 
 log = logging.getLogger(__name__)
+
+#: A file whose consecutive returns (of one head) are adjacent pulses this often is in scan order: its order is
+#: the pulse order when it has no GPS time (:class:`~lidarmap.facade.sensors.PulseClock`).
+MIN_ADJACENT = 0.5
 
 #: How a campaign's sensor positions were obtained (stored in the campaign's summary as ``sensors``).
 MODES = ("trajectory", "origins", "estimated from the cloud and GPS time", "estimated from the cloud")
@@ -161,8 +168,16 @@ def mobile_campaign(points: Path, trajectory: Path | None, crs: Any, columns: st
     if sample["gps_time"] is not None:
         track = timed_path(path, sample["gps_time"], sample["xyz"][:, :2], params, str(points))
         return MobileCampaign(source(), track, MODES[2], params.noise_factor)
-    log.warning("%s: no trajectory, origins or GPS time: every point's sensor is taken across the track from it "
-                "(a yawed or crossed profiler breaks this; docs/mls.md)", points)
+    clock = PulseClock(path, profile_slopes(path, ground_points(sample["xyz"], sample["classification"],
+                                                                 params.cell), params))
+    track = clock.trajectory(_stream(header, chunk_points, crs, columns), str(points))
+    if clock.adjacent_share >= MIN_ADJACENT:
+        log.info("%s: no GPS time: pulses counted in file order, %d head(s) yawed %s deg, %.2f deg per pulse",
+                 points, len(clock.slopes), np.round(np.degrees(np.arctan(clock.slopes)), 1),
+                 np.degrees(clock.step))
+        return MobileCampaign(source(clock), track, MODES[3], params.noise_factor)
+    log.warning("%s: no trajectory, origins or GPS time, and the file is not in scan order: every point's sensor "
+                "is taken across the track from it (a yawed or crossed profiler breaks this; docs/mls.md)", points)
     return MobileCampaign(source(lambda first, chunk: path_times(path, chunk.xyz[:, :2])),
                           path_trajectory(path, str(points)), MODES[3], params.noise_factor, pulse_times=False)
 
