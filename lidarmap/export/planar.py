@@ -35,7 +35,7 @@ import shapely
 import trimesh
 
 from lidarmap.config import check_params
-from lidarmap.export.geomcheck import plane_basis
+from lidarmap.export.geomcheck import plane_basis, valid_polygons
 from lidarmap.export.snap import snap_to_planes
 
 __all__ = ["ROOF_NZ", "PlanarFace", "PlanarParams", "face_kind", "planar_faces"]
@@ -346,11 +346,47 @@ def _vertex_pairs(rings: list[list[list[np.ndarray]]], faces: np.ndarray, member
             np.concatenate(interior_pairs).astype(np.int64).reshape(-1, 2))
 
 
+def _corners(ring: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """The ring's ``keep`` vertices, a vertex repeated in a row once."""
+    ring = ring[keep[ring]]
+    return ring[ring != np.roll(ring, 1)] if len(ring) > 1 else ring
+
+
+def _split_where_touching(polygons: list[list[np.ndarray]], positions: np.ndarray
+                          ) -> list[list[np.ndarray]] | None:
+    """Polygons whose rings pass a vertex twice (self-touching, a hole touching the shell) split there into valid
+    polygons of the same vertices (:func:`lidarmap.export.geomcheck.valid_polygons`); ``None`` when the repair
+    needs a new vertex (rings that cross) or loses area: those are not just touching."""
+    out = []
+    for poly in polygons:
+        index = {tuple(positions[i].tolist()): i for r in poly for i in r.tolist()}
+        parts = valid_polygons([positions[r] for r in poly], min_area=0.0)
+        basis = plane_basis(positions[poly[0]])
+        if basis is None:
+            return None
+        origin, u, v, _ = basis
+
+        def area(rings: list[np.ndarray]) -> float:
+            return sum(abs(shapely.Polygon(np.column_stack([(r - origin) @ u, (r - origin) @ v])).area)
+                       * (1 if j == 0 else -1) for j, r in enumerate(rings))
+
+        before = sum(shapely.Polygon(np.column_stack([(positions[r] - origin) @ u, (positions[r] - origin) @ v])).area
+                     * (1 if j == 0 else -1) for j, r in enumerate(poly))
+        if not parts or abs(sum(area(p) for p in parts) - abs(before)) > 1e-6 * max(abs(before), 1.0):
+            return None
+        for rings in parts:
+            found = [[index.get(tuple(x)) for x in r.tolist()] for r in rings]
+            if any(i is None for r in found for i in r):
+                return None
+            out.append([np.asarray(r, dtype=np.int64) for r in found])
+    return out
+
+
 def _keep_short_rings(rings: list[list[list[np.ndarray]]], keep: np.ndarray) -> None:
     """Mark every vertex of a ring that would keep fewer than three vertices as kept (in every face that has it,
     so neighbours share them: no T-junction); repeated until no ring is short."""
     while True:
-        short = [r for polygons in rings for poly in polygons for r in poly if np.count_nonzero(keep[r]) < 3
+        short = [r for polygons in rings for poly in polygons for r in poly if len(_corners(r, keep)) < 3
                  and not keep[r].all()]
         if not short:
             return
@@ -379,9 +415,11 @@ def _planar_pieces(rings: list[list[list[np.ndarray]]], ring_pairs: np.ndarray, 
         out, fresh = [], []
         for k, face_rings in enumerate(rings):
             if split[k]:
-                out.append([[t] for t in faces[members[k]]])
+                tri = faces[members[k]]
+                tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])]
+                out.append([[t] for t in tri])
                 continue
-            pieces = [[r[keep[r]] for r in poly] for poly in face_rings]
+            pieces = [[_corners(r, keep) for r in poly] for poly in face_rings]
             points = [[positions[r] for r in poly] for poly in pieces]
             if not pieces:
                 out.append([])
@@ -389,6 +427,9 @@ def _planar_pieces(rings: list[list[list[np.ndarray]]], ring_pairs: np.ndarray, 
             corners = np.concatenate([positions[r] for poly in pieces for r in poly])
             planar = np.max(np.abs(corners @ plane_n[k] - plane_d[k])) <= tolerance
             valid = _valid_in_plane(points, plane_n[k], plane_n[k] * plane_d[k])
+            if not valid:
+                repaired = _split_where_touching(pieces, positions)
+                valid, pieces = repaired is not None, repaired or pieces
             if planar and valid:
                 out.append(pieces)
             elif valid:
@@ -404,6 +445,84 @@ def _planar_pieces(rings: list[list[list[np.ndarray]]], ring_pairs: np.ndarray, 
             keep[faces[members[k]].ravel()] = True
 
 
+#: Corners closer than this (m) after snapping are one point (the writer's millimetre quantum).
+SAME_POINT = 1e-3
+#: Rounds of snapping at most; each collapses the corner pairs whose edge the previous round turned around.
+COLLAPSE_ROUNDS = 5
+
+
+def _aliased(rings: list[list[list[np.ndarray]]], alias: np.ndarray) -> list[list[list[np.ndarray]]]:
+    """The rings with every vertex replaced by its alias, repeats of the same vertex in a row removed; a ring left
+    with fewer than three vertices is dropped (a face whose exterior is dropped has nothing left)."""
+    out = []
+    for polygons in rings:
+        kept = []
+        for poly in polygons:
+            rings_left = []
+            for r in poly:
+                r = alias[r]
+                r = r[r != np.roll(r, 1)] if len(r) > 1 else r
+                if len(r) >= 3:
+                    rings_left.append(r)
+            if rings_left and len(rings_left[0]) == len(alias[poly[0]][alias[poly[0]] != np.roll(alias[poly[0]], 1)]):
+                kept.append(rings_left)
+        out.append(kept)
+    return out
+
+
+def _inverted_edges(rings: list[list[list[np.ndarray]]], keep: np.ndarray, before: np.ndarray,
+                    after: np.ndarray) -> np.ndarray:
+    """(a, b) pairs of consecutive corners whose edge runs the other way after snapping than before (the planes
+    order those corners differently from the mesh: two corners of four planes that do not meet in a point) or
+    that snapping put on the same point (two corners of the same three planes)."""
+    pairs = []
+    for polygons in rings:
+        for poly in polygons:
+            for r in poly:
+                r = _corners(r, keep) if len(_corners(r, keep)) >= 3 else r
+                a, b = r, np.roll(r, -1)
+                turned = ((np.einsum("ij,ij->i", after[b] - after[a], before[b] - before[a]) < 0)
+                          | (np.linalg.norm(after[b] - after[a], axis=1) < SAME_POINT))
+                turned &= a != b
+                pairs.append(np.column_stack([a[turned], b[turned]]))
+    return np.concatenate(pairs).reshape(-1, 2) if pairs else np.zeros((0, 2), dtype=np.int64)
+
+
+def _root(alias: np.ndarray) -> np.ndarray:
+    while True:
+        nxt = alias[alias]
+        if np.array_equal(nxt, alias):
+            return alias
+        alias = nxt
+
+
+def _snapped(rings: list[list[list[np.ndarray]]], faces: np.ndarray, members: list[np.ndarray],
+             vertices: np.ndarray, plane_n: np.ndarray, plane_d: np.ndarray, tolerance: float):
+    """Snap the faces' vertices onto their planes (:func:`lidarmap.export.snap.snap_to_planes`); where that turns
+    an edge between two corners around, the two corners become one (on all their faces' planes) and the faces are
+    snapped again. Returns the faces' polygons (rings of vertex indices), which faces were split into triangles,
+    the vertex positions and the planes (normals, offsets)."""
+    alias = np.arange(len(vertices))
+    for _ in range(COLLAPSE_ROUNDS):
+        current = _aliased(rings, alias)
+        mapped = alias[faces]
+        ring_pairs, interior_pairs = _vertex_pairs(current, mapped, members)
+        snapped = snap_to_planes(vertices, ring_pairs, interior_pairs, plane_n, plane_n * plane_d[:, None],
+                                 tolerance)
+        keep = np.bincount(ring_pairs[:, 0], minlength=len(vertices)) >= 3
+        turned = _inverted_edges(current, keep, vertices, snapped.vertices)
+        if not len(turned):
+            break
+        low, high = turned.min(axis=1), turned.max(axis=1)
+        for a, b in zip(low.tolist(), high.tolist()):  # union of the pairs, the lower index naming each group
+            ra, rb = _root(alias)[[a, b]]
+            alias[max(ra, rb)] = min(ra, rb)
+        alias = _root(alias)
+    pieces, split = _planar_pieces(current, ring_pairs, members, mapped, snapped.vertices, snapped.normals,
+                                   snapped.offsets, tolerance)
+    return pieces, split, snapped.vertices, snapped.normals, snapped.offsets
+
+
 def planar_faces(vertices: np.ndarray, faces: np.ndarray, params: PlanarParams = PlanarParams()
                  ) -> list[PlanarFace]:
     """The mesh's planar faces (see the module docstring), largest first."""
@@ -411,7 +530,7 @@ def planar_faces(vertices: np.ndarray, faces: np.ndarray, params: PlanarParams =
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if not len(faces):
         return []
-    areas, normals, label, planes = _partition(vertices, faces, params)
+    areas, _, label, planes = _partition(vertices, faces, params)
     order = [k for k in np.argsort(-np.bincount(label, weights=areas), kind="stable")]
     members = [np.flatnonzero((label == k) & (areas > 0)) for k in order]
     rings = [_face_rings(vertices, faces[m], planes[k][0]) if len(m) else [] for k, m in zip(order, members)]
@@ -419,12 +538,8 @@ def planar_faces(vertices: np.ndarray, faces: np.ndarray, params: PlanarParams =
     plane_n = np.array([planes[k][0] for k in order])
     plane_d = np.einsum("ij,ij->i", plane_n, np.array([planes[k][1] for k in order]))
     if params.snap:
-        ring_pairs, interior_pairs = _vertex_pairs(rings, faces, members)
-        snapped = snap_to_planes(positions, ring_pairs, interior_pairs, plane_n,
-                                 plane_n * plane_d[:, None], params.tolerance)
-        positions, plane_n, plane_d = snapped.vertices, snapped.normals, snapped.offsets
-        rings, split = _planar_pieces(rings, ring_pairs, members, faces, positions, plane_n, plane_d,
-                                      params.tolerance)
+        rings, split, positions, plane_n, plane_d = _snapped(rings, faces, members, positions, plane_n, plane_d,
+                                                             params.tolerance)
     else:
         split = np.zeros(len(rings), dtype=bool)
     out = []
