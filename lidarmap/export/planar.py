@@ -352,6 +352,13 @@ def _corners(ring: np.ndarray, keep: np.ndarray) -> np.ndarray:
     return ring[ring != np.roll(ring, 1)] if len(ring) > 1 else ring
 
 
+def _signed_area(rings: list[np.ndarray], basis: tuple) -> float:
+    """Area (m²) of a polygon (exterior, holes; 3D points) in the plane ``basis`` (origin, u, v, normal)."""
+    origin, u, v, _ = basis
+    flat = [np.column_stack([(r - origin) @ u, (r - origin) @ v]) for r in rings]
+    return sum(abs(shapely.Polygon(f).area) * (1 if j == 0 else -1) for j, f in enumerate(flat))
+
+
 def _split_where_touching(polygons: list[list[np.ndarray]], positions: np.ndarray
                           ) -> list[list[np.ndarray]] | None:
     """Polygons whose rings pass a vertex twice (self-touching, a hole touching the shell) split there into valid
@@ -359,23 +366,17 @@ def _split_where_touching(polygons: list[list[np.ndarray]], positions: np.ndarra
     needs a new vertex (rings that cross) or loses area: those are not just touching."""
     out = []
     for poly in polygons:
+        rings = [positions[r] for r in poly]
+        basis = plane_basis(rings[0])
+        parts = valid_polygons(rings, min_area=0.0)
+        if basis is None or not parts:
+            return None
+        if abs(sum(_signed_area(p, basis) for p in parts) - _signed_area(rings, basis)) > 1e-6 * max(
+                _signed_area(rings, basis), 1.0):
+            return None
         index = {tuple(positions[i].tolist()): i for r in poly for i in r.tolist()}
-        parts = valid_polygons([positions[r] for r in poly], min_area=0.0)
-        basis = plane_basis(positions[poly[0]])
-        if basis is None:
-            return None
-        origin, u, v, _ = basis
-
-        def area(rings: list[np.ndarray]) -> float:
-            return sum(abs(shapely.Polygon(np.column_stack([(r - origin) @ u, (r - origin) @ v])).area)
-                       * (1 if j == 0 else -1) for j, r in enumerate(rings))
-
-        before = sum(shapely.Polygon(np.column_stack([(positions[r] - origin) @ u, (positions[r] - origin) @ v])).area
-                     * (1 if j == 0 else -1) for j, r in enumerate(poly))
-        if not parts or abs(sum(area(p) for p in parts) - abs(before)) > 1e-6 * max(abs(before), 1.0):
-            return None
-        for rings in parts:
-            found = [[index.get(tuple(x)) for x in r.tolist()] for r in rings]
+        for part in parts:
+            found = [[index.get(tuple(x)) for x in r.tolist()] for r in part]
             if any(i is None for r in found for i in r):
                 return None
             out.append([np.asarray(r, dtype=np.int64) for r in found])
