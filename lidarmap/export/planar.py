@@ -79,8 +79,10 @@ class PlanarParams:
 @dataclasses.dataclass
 class PlanarFace:
     """One face: its triangles (indices into the mesh's faces), plane (unit normal, a point), semantic kind, area
-    (m²), the polygons (exterior then holes, (n, 3) CRS coordinates of mesh vertices) and ``planarity``: the largest
-    distance (m) of those vertices to the plane."""
+    (m²) of its mesh triangles, the polygons (exterior then holes, (n, 3) CRS coordinates: the mesh's vertices,
+    moved onto the planes when snapping), ``planarity``: the largest distance (m) of a polygon's vertex to that
+    polygon's own plane, and ``split``: whether snapping could not keep it one polygon (then its polygons are
+    planar triangles)."""
 
     triangles: np.ndarray
     normal: np.ndarray
