@@ -292,3 +292,50 @@ def test_window_in_a_fringe_of_shadow_but_enclosed_by_wall_is_a_window():
     values[20:36, 10:22] = HOLE
     no_rule = FacadeParams().updated(enclosed_reach_cells=0)
     assert [op.kind for op in detect_openings(values, 0.1, no_rule) if op.n_cells > 20] == [ElementKind.UNKNOWN]
+
+
+def test_french_window_behind_a_balcony_parapet_reaches_down_to_it():
+    """The parapet of a balcony (a layer in front of the wall) hides the lower part of the window above it from a
+    scanner below: the window reaches down, across the occluded rows, to the parapet's top. A window whose lower
+    part a car's shadow hides down to the ground keeps what was seen."""
+    from lidarmap.facade.openings import (
+        HOLE,
+        OBJECT,
+        OCCLUDED,
+        complete_behind_structures,
+        detect_openings,
+    )
+
+    values = np.full((60, 60), OBJECT, dtype=np.int8)
+    front = np.zeros(values.shape, dtype=bool)
+    front[20:32, 5:25] = True  # the parapet: t 2.0-3.2 m, observed (OBJECT) in front of the wall
+    values[32:40, 8:22] = OCCLUDED  # its shadow on the wall above it
+    values[36:52, 8:22] = HOLE  # what was seen of a window reaching from 3.2 m (hidden) to 5.2 m
+    values[0:30, 35:52] = OCCLUDED  # a car's shadow from the ground up to 3.0 m ...
+    values[26:46, 38:50] = HOLE  # ... over the lower part of another window
+    ops = [op for op in detect_openings(values, 0.1, FacadeParams()) if op.kind is ElementKind.WINDOW]
+    assert len(ops) == 2
+    assert complete_behind_structures(ops, values, front, 0.0, 0.0, 0.1, FacadeParams()) == 1
+    french, other = sorted(ops, key=lambda op: op.bounds[0])
+    assert french.bounds[2] == pytest.approx(3.2, abs=0.05) and french.bounds[3] == pytest.approx(5.25, abs=0.06)
+    assert 0.0 < french.uncertainty < 1.0
+    assert other.bounds[2] == pytest.approx(2.55, abs=0.06)  # the car's shadow: unchanged
+
+
+def test_door_typing_by_size_ground_line_and_leaf():
+    """door_or_window on one opening 2.1 m tall on the ground line (0.1 m above it): 0.9 m wide a door, 0.6 m wide
+    a window (too narrow for a leaf); 2.6 m wide a door only when a leaf closes it (a garage), else a shop front."""
+    from lidarmap.facade.openings import door_or_window
+
+    params = FacadeParams()
+    mask = np.ones((21, 26), dtype=bool)
+    shut, glazed = np.ones(mask.shape), np.full(mask.shape, 0.3)
+
+    def kind(width: float, opaque) -> ElementKind:
+        return door_or_window((0.0, width, 0.1, 2.2), 0.0, mask, opaque, params)
+
+    assert kind(0.9, shut) is ElementKind.DOOR and kind(0.9, glazed) is ElementKind.DOOR
+    assert kind(0.6, shut) is ElementKind.WINDOW
+    assert kind(2.6, shut) is ElementKind.DOOR and kind(2.6, glazed) is ElementKind.WINDOW
+    assert door_or_window((0.0, 0.9, 0.9, 3.0), 0.0, mask, glazed, params) is ElementKind.WINDOW  # a 0.9 m sill
+    assert door_or_window((0.0, 0.9, 0.9, 3.0), 0.0, mask, shut, params) is ElementKind.DOOR  # a leaf up the steps

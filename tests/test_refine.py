@@ -434,3 +434,24 @@ def test_a_worse_later_campaign_does_not_lower_a_well_observed_opening():
     new = [Element(0, ElementKind.DOOR, upper, None, 0.1, campaigns=[2])]
     fused, _ = _fuse_openings(stored, new, votes, _Ids(stored), RefineParams(), extent)
     assert [e.kind for e in fused] == [ElementKind.WINDOW]
+
+
+def test_a_window_found_in_part_takes_the_sides_of_the_stored_unknown_region_it_lies_in():
+    """Campaign 1 saw an irregular hole (stored as an unknown region, its cells voting window); campaign 2 finds
+    only a strip of it as a window. Without a stored window to match, the fused window takes the unknown region's
+    sides where the votes support them, instead of keeping the strip."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    window, strip = box(1.0, 1.0, 2.6, 3.4), box(1.0, 2.9, 2.6, 3.4)
+    cells, strip_cells = grid.raster(window), grid.raster(strip)
+    w_new = strip_cells.astype(int)
+    votes = _Votes(grid, cells.astype(int) + w_new, 2 * (~cells).astype(int), np.full(grid.shape, 2),
+                   np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=w_new)
+    unknown = [Element(7, ElementKind.UNKNOWN, window, None, math.inf, campaigns=[1])]
+    new = [Element(0, ElementKind.WINDOW, strip, None, 0.1, campaigns=[2])]
+    extent = (0.0, 4.0, 0.0, 4.0)
+    fused, _ = _fuse_openings([], new, votes, _Ids(unknown), RefineParams(), extent, unknown)
+    assert len(fused) == 1 and polygon_iou(fused[0].polygon, window) >= 0.9, fused[0].polygon.bounds
+    alone, _ = _fuse_openings([], new, votes, _Ids(unknown), RefineParams(), extent)  # the strip, as before
+    assert len(alone) == 1 and polygon_iou(alone[0].polygon, window) < 0.5

@@ -260,7 +260,7 @@ def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: fl
     """Cells of door leaves nearly flush with the wall (a flush door 2-3 cm back returns most of its pulses within
     ``pass_depth`` of the wall: too few cross the plane for :func:`opening_cells`). A door leaf is told from the
     wall by geometry: a rectangle of cells whose mean return depth lies at least ``leaf_offset`` behind the wall
-    (joined with the opening cells around it), door-sized (``door_min_height`` tall, ``min_opening_size`` ..
+    (joined with the opening cells around it), door-sized (``door_min_height`` tall, ``door_min_width`` ..
     ``door_max_width`` wide), filling ``Ta`` of its bounding box, starting within ``door_leaf_tol`` of the
     ground line and lying ``leaf_offset`` behind the wall beside and above it. Other regions are left alone: a
     blank wall with range noise never forms such a rectangle, glass and rooms are :func:`opening_cells`'."""
@@ -279,7 +279,7 @@ def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: fl
         r0, r1, c0, c1 = sl[0].start, sl[0].stop, sl[1].start, sl[1].stop
         region = labels == lab
         width, height = (c1 - c0) * cell, (r1 - r0) * cell
-        if height < op.door_min_height or not op.min_opening_size <= width <= op.door_max_width:
+        if height < op.door_min_height or not op.door_min_width <= width <= op.door_max_width:
             continue
         if (region & known).sum() < op.Ta * known[r0:r1, c0:c1].sum():
             continue  # measured wall inside the box: not one rectangle

@@ -286,6 +286,9 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         # eq. (3) on this opening alone: other holes and the bridged cells are neither hole nor object
         eps = window_uncertainty_eq3(np.where(mask, HOLE, np.where(region | (work == HOLE), OCCLUDED, work)), rect)
         bounds = refine_bounds(rect, wall_st, s0, t0, cell, params)
+        # sizes count inside the façade only: a sliver under the eave is not a window reaching above the roof
+        bounds = (max(bounds[0], s0), min(bounds[1], s0 + cols * cell), max(bounds[2], t0),
+                  min(bounds[3], t0 + rows * cell))
         width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
         hidden = occ_border > params.openings.occlusion_touch_max and not enclosed_by_wall(work, rect, params)
         if hidden or eps > params.openings.max_window_uncertainty \
@@ -306,28 +309,31 @@ def enclosed_by_wall(values: np.ndarray, rect: tuple[int, int, int, int], params
     k = params.openings.enclosed_reach_cells
     if k <= 0:
         return False
-    rows, cols = values.shape
     r0, r1, c0, c1 = rect
     wall = values == OBJECT
-    bands = (wall[r0:r1, max(c0 - k, 0):c0], wall[r0:r1, c1:min(c1 + k, cols)],  # left, right: per row
-             wall[max(r0 - k, 0):r0, c0:c1].T, wall[r1:min(r1 + k, rows), c0:c1].T)  # below, above: per column
+    bands = (wall[r0:r1, max(c0 - k, 0):c0], wall[r0:r1, c1:c1 + k],  # left, right: per row
+             wall[max(r0 - k, 0):r0, c0:c1].T, wall[r1:r1 + k, c0:c1].T)  # below, above: per column
     return all(b.shape[0] > 0 and b.shape[1] > 0 and float(b.any(axis=1).mean()) >= 0.5 for b in bands)
 
 
 def door_or_window(bounds: tuple[float, float, float, float], ground: float, mask: np.ndarray,
                    opaque: np.ndarray | None, params: FacadeParams) -> ElementKind:
-    """A door is at least ``door_min_height`` tall, at most ``door_max_width`` wide and starts within
+    """A door is at least ``door_min_height`` tall, ``door_min_width`` .. ``door_max_width`` wide and starts within
     ``door_bottom_tol`` of the ground line below it, or within ``door_leaf_tol`` when it is closed by a leaf: on
-    average over its cells with passing pulses, at least ``opaque_share`` of them came back from just behind the
+    average over its cells with passing pulses (those 2 cells or more inside its border: reveals catch pulses
+    along the border of an open window), at least ``opaque_share`` of them came back from just behind the
     wall (``opaque``: that share per cell, NaN without passing pulses; a door at the top of steps). An opening
     wider than ``open_door_max_width`` is a door only when closed by such a leaf (a garage door): glazed shop
     fronts let most pulses through. Everything else, shop windows and windows with low sills included, is a
     window."""
     op = params.openings
     width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
-    if height < op.door_min_height or width > op.door_max_width:
+    if height < op.door_min_height or not op.door_min_width <= width <= op.door_max_width:
         return ElementKind.WINDOW
-    share = opaque[mask] if opaque is not None else np.zeros(0)
+    # a leaf closes the whole opening; the reveals of an open window catch pulses along its border only
+    core = ndimage.binary_erosion(mask, structure=np.ones((5, 5), dtype=bool))
+    core = core if core.sum() >= 0.25 * mask.sum() else mask
+    share = opaque[core] if opaque is not None else np.zeros(0)
     share = share[np.isfinite(share)]
     leaf = len(share) > 0 and float(share.mean()) >= params.evidence.opaque_share
     if width > op.open_door_max_width and len(share) > 0 and not leaf:
@@ -407,4 +413,39 @@ def complete_by_repetition(openings: list[Opening], values: np.ndarray, s0: floa
             op.rect = rect
             op.uncertainty = window_uncertainty_eq3(local, rect)
             done += 1
+    return done
+
+
+def complete_behind_structures(openings: list[Opening], values: np.ndarray, front: np.ndarray, s0: float, t0: float,
+                               cell: float, params: FacadeParams) -> int:
+    """Windows whose lower part a structure in front hides (the parapet of a balcony under a French window): the
+    bottom side moves down across the occluded rows below it to the top of that structure, in place.
+
+    A window qualifies when the row below its rectangle is mostly occluded; its bottom then moves down row by row
+    while a row is not mostly observed (OBJECT), at most by the window's own height, and only when the first
+    mostly observed row is mostly ``front`` cells (a layer in front of the wall: a balcony, not the wall or a car's
+    shadow reaching the ground). Its uncertainty is eq. (3) of the grown rectangle. Returns how many changed.
+    """
+    values = np.asarray(values)
+    done = 0
+    for op in openings:
+        if op.kind is not ElementKind.WINDOW or op.bounds is None or op.rect is None:
+            continue
+        r0, r1, c0, c1 = op.rect
+        across = slice(c0, c1)
+        if r0 < 1 or c1 - c0 < 2 or np.mean(values[r0 - 1, across] == OCCLUDED) < 0.5:
+            continue
+        k, stop = r0 - 1, max(r0 - (r1 - r0), 0)
+        while k >= stop and np.mean(values[k, across] == OBJECT) <= 0.5:
+            k -= 1
+        if k < stop or np.mean(front[k, across]) < 0.5:
+            continue  # nothing observed within reach, or the wall itself: the window may end anywhere above it
+        new_r0 = k + 1
+        if new_r0 >= r0:
+            continue
+        local = np.where(op.mask, HOLE, np.where(values == HOLE, OCCLUDED, values))
+        op.rect = (new_r0, r1, c0, c1)
+        op.bounds = (op.bounds[0], op.bounds[1], t0 + new_r0 * cell, op.bounds[3])
+        op.uncertainty = window_uncertainty_eq3(local, op.rect)
+        done += 1
     return done

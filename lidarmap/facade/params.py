@@ -296,6 +296,8 @@ class OpeningParams:
         shorter; their sills are ~1 m above the floor) ...
     ground_band (4.0): ground points up to this far in front of the wall give the ground line ...
     ground_bin (1.0): ... one low (20th percentile) height per this length along the wall.
+    door_min_width (0.7): ... and at least this wide (a door leaf with its frame; tall narrow windows on a low sill
+        are windows) ...
     door_max_width (3.5): ... and at most this wide (shop windows and glazed fronts are wider: windows) ...
     open_door_max_width (1.8): ... and wider than this only when closed by an opaque leaf (garage doors; glazed
         shop fronts 2-4 m wide with a sill near the ground let most pulses through: windows).
@@ -306,6 +308,8 @@ class OpeningParams:
         takes the height/width of the unoccluded windows in its column/row, across occluded cells only
         (paper §2.1: façade elements repeat); eq. (3) then counts the occluded cells it covers ...
     repetition_tol (0.2): ... the windows of a column (row) have both sides within this of each other.
+    complete_behind_structures (True): a window whose lower part a structure in front hides (a balcony parapet)
+        reaches down, across the occluded rows below it, to that structure's top (at most its own height again).
     hole_open_cells (1): holes are opened by a square of this radius (removes 1-2 cell fringes of unobserved
         wall along shadow edges).
     bridge_cells (2): hole parts separated by up to 2*bridge_cells occluded cells (a pole or trunk in front
@@ -340,6 +344,7 @@ class OpeningParams:
         "bridge_cells": ">= 0",
         "occlusion_grow_cells": ">= 0",
         "door_max_width": ">= 0",
+        "door_min_width": ">= 0",
         "open_door_max_width": ">= 0",
         "repetition_tol": ">= 0",
         "min_unknown_area": ">= 0",
@@ -369,9 +374,11 @@ class OpeningParams:
     bridge_cells: int = 2
     occlusion_grow_cells: int = 1
     door_max_width: float = 3.5
+    door_min_width: float = 0.7
     open_door_max_width: float = 1.8
     recessed_windows: bool = False
     complete_by_repetition: bool = True
+    complete_behind_structures: bool = True
     repetition_tol: float = 0.2
     min_unknown_area: float = 0.1
 

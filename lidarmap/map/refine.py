@@ -603,20 +603,23 @@ def _member_weights(members: list[Element], n_old: int, votes: _Votes) -> list[f
 
 
 def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: RefineParams,
-                   extent: tuple[float, float, float, float], n_old: int = 0) -> Element | None:
+                   extent: tuple[float, float, float, float], n_old: int = 0,
+                   extra_bounds: np.ndarray | None = None) -> Element | None:
     """One window/door from matched shapes: vote-map refit over their edge lines, sub-cell sides averaged over the
     shapes that proposed the chosen line (weighted by campaigns), kind by evidence-weighted vote
     (:func:`weighted_kind`; the first ``n_old`` members are stored shapes). ``None`` when the fused ε exceeds
     ``max_window_uncertainty`` or the wall evidence over it outweighs its opening evidence
-    (:func:`outweighed_by_wall`)."""
+    (:func:`outweighed_by_wall`). ``extra_bounds`` (rows of s_lo, t_lo, s_hi, t_hi): more candidate sides, from
+    stored unknown regions the shapes lie in."""
     g = votes.grid
     off = params.line_offsets
     bounds = np.array([[*m.polygon.bounds] for m in members])  # minx (s_lo), miny (t_lo), maxx (s_hi), maxy (t_hi)
+    lines = bounds if extra_bounds is None or len(extra_bounds) == 0 else np.vstack([bounds, extra_bounds])
     pad = off + 2
-    c_lo = max(g.line(bounds[:, 0].min(), 0) - pad, 0)
-    c_hi = min(g.line(bounds[:, 2].max(), 0) + pad, g.shape[1])
-    r_lo = max(g.line(bounds[:, 1].min(), 1) - pad, 0)
-    r_hi = min(g.line(bounds[:, 3].max(), 1) + pad, g.shape[0])
+    c_lo = max(g.line(lines[:, 0].min(), 0) - pad, 0)
+    c_hi = min(g.line(lines[:, 2].max(), 0) + pad, g.shape[1])
+    r_lo = max(g.line(lines[:, 1].min(), 1) - pad, 0)
+    r_hi = min(g.line(lines[:, 3].max(), 1) + pad, g.shape[0])
     if c_hi <= c_lo or r_hi <= r_lo:
         return None
     patch = (slice(r_lo, r_hi), slice(c_lo, c_hi))
@@ -624,8 +627,8 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     for m in members:
         claimed |= g.raster(m.polygon)[patch]
     w = _own_votes(votes.window[patch], votes.objects[patch], claimed)
-    cols = [g.line(b, 0) - c_lo + k for b in np.r_[bounds[:, 0], bounds[:, 2]] for k in range(-off, off + 1)]
-    rows = [g.line(b, 1) - r_lo + k for b in np.r_[bounds[:, 1], bounds[:, 3]] for k in range(-off, off + 1)]
+    cols = [g.line(b, 0) - c_lo + k for b in np.r_[lines[:, 0], lines[:, 2]] for k in range(-off, off + 1)]
+    rows = [g.line(b, 1) - r_lo + k for b in np.r_[lines[:, 1], lines[:, 3]] for k in range(-off, off + 1)]
     rect, eps = refit_rectangle(w, votes.objects[patch], cols, rows)
     if rect is None or eps > params.max_window_uncertainty:
         return None
@@ -703,9 +706,21 @@ def _rescored_opening(e: Element, votes: _Votes, params: RefineParams) -> Elemen
     return dataclasses.replace(e, uncertainty=float(eps))
 
 
+def _unknown_bounds(shapes: list[Element], unknown: list[Element]) -> np.ndarray:
+    """Bounds (s_lo, t_lo, s_hi, t_hi) of the stored unknown regions that hold most of one of ``shapes``: an
+    irregular hole an earlier campaign saw where a later one finds (part of) a window; its sides are candidates
+    for the window's (the votes decide)."""
+    out = [u.polygon.bounds for u in unknown for e in shapes
+           if e.polygon.area > 0 and u.polygon.intersection(e.polygon).area >= 0.5 * e.polygon.area]
+    return np.array(out, dtype=np.float64).reshape(-1, 4)
+
+
 def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _Ids, params: RefineParams,
-                   extent: tuple[float, float, float, float]) -> tuple[list[Element], set[int]]:
-    """Windows and doors after the fusion, and the ids of those that changed (merged, added or re-scored)."""
+                   extent: tuple[float, float, float, float],
+                   unknown: list[Element] | None = None) -> tuple[list[Element], set[int]]:
+    """Windows and doors after the fusion, and the ids of those that changed (merged, added or re-scored). A new
+    shape without a stored match may take the sides of a stored ``unknown`` region it lies in
+    (:func:`_unknown_bounds`)."""
     out: list[Element] = []
     changed: set[int] = set()
     for oi, ni in _clusters(old, new, lambda e: "opening", params):
@@ -719,7 +734,8 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
                         changed.add(e.element_id)
             continue
         keep_id = _keeper(olds).element_id if olds else ids()
-        merged = _merge_opening(olds + news, keep_id, votes, params, extent, n_old=len(olds))
+        extra = None if olds or not unknown else _unknown_bounds(news, unknown)
+        merged = _merge_opening(olds + news, keep_id, votes, params, extent, n_old=len(olds), extra_bounds=extra)
         if merged is not None:
             out.append(merged)
             changed.add(keep_id)
@@ -870,7 +886,7 @@ def _fuse_elements(stored: Facade, obs: Facade, layer_map: dict[int, int], votes
         return [e for e in elements if e.kind in kinds and not e.is_unknown]
 
     openings, changed = _fuse_openings(of(stored.elements, *OPENINGS), of(new, *OPENINGS), votes, ids, params,
-                                       obs.extent)
+                                       obs.extent, [e for e in stored.elements if e.is_unknown])
     min_area = fparams.objects.min_object_area
     structures, changed_s = _fuse_structures(of(stored.elements, ElementKind.STRUCTURE),
                                              of(new, ElementKind.STRUCTURE), votes, ids, params, min_area)
