@@ -539,6 +539,8 @@ class PulseClock:
                 arcs.append(back)
             times.append(knots_t)
             arcs.append(knots_s)
+        if not times:  # too few returns to count (adjacent_share is then 0: the caller does not use this clock)
+            return path_trajectory(self.path, source)
         t, a = np.concatenate(times), np.concatenate(arcs)
         keep = np.concatenate([[True], np.diff(t) > 0])
         return Trajectory(time=t[keep], xyz=self.path.at(a[keep]), source=source)
