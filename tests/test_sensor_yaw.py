@@ -23,11 +23,12 @@ WALLS = (7.0, -9.0)  # y of the left and right walls; the road z = 0 between the
 HEADING = np.radians(25.0)  # driving direction, counter-clockwise from +x
 
 
-def street_scan(yaws: tuple[float, ...], length: float = 50.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def street_scan(yaws: tuple[float, ...], length: float = 50.0, rate: float = RATE
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(points, their pulse origins, their head) in scan order (time, heads interleaved), CRS-like coordinates."""
-    n_prof = int(length / SPEED * RATE)
+    n_prof = int(length / SPEED * rate)
     angle = np.radians(-180.0 + STEP_DEG * np.arange(int(360 / STEP_DEG)))
-    times = (np.arange(n_prof)[:, None] + np.arange(len(angle))[None, :] / len(angle)).ravel() / RATE
+    times = (np.arange(n_prof)[:, None] + np.arange(len(angle))[None, :] / len(angle)).ravel() / rate
     parts = []
     for h, yaw in enumerate(yaws):
         tilt = np.radians(yaw)
@@ -97,3 +98,22 @@ class _Chunk:
 
     def __len__(self) -> int:
         return len(self.xyz)
+
+
+def test_map_update_from_a_crossed_head_ply_without_time_through_the_cli(tmp_path) -> None:
+    """End to end: the two-head street as a PLY with x, y, z and classes only, no footprints: the update counts
+    pulses per head, finds both walls as buildings and marks the campaign as estimated."""
+    from conftest import run_cli_in_process as run
+
+    from lidarmap.map.store import MapStore
+    from lidarmap.sim.plyout import write_points_ply
+
+    pts, _, _ = street_scan((35.0, -35.0), length=40.0, rate=25.0)
+    cols = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "classification": _ground(pts)}
+    ply = write_points_ply(tmp_path / "street.ply", cols, ["crs EPSG:32632"])
+    code, _, err = run("map", "update", tmp_path / "s.lmap", "--points", ply)
+    assert code == 0, err
+    with MapStore.open(tmp_path / "s.lmap") as store:
+        building_map = store.load()
+    assert building_map.campaigns[-1].summary["sensors"] == "estimated from the cloud"
+    assert sum(1 for b in building_map.buildings.values() if b.facades) == 2

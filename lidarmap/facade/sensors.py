@@ -11,10 +11,12 @@ The façade steps need the origin of every point's pulse (occlusion ray tracing,
   h² / (h² + c²)), so the ridge of the smoothed ground-point density on a 1 m grid is the path; its skeleton's
   longest branch gives the order; the cross-track position is refined per 2 m of track as the median offset of the
   ground points within ``refine_window`` of it (the density is symmetric about the nadir), and the height is the
-  ground height there plus ``sensor_height``. Every point's sensor is then the path point its position projects to
-  (the profile plane is across the track): its "time" is that arc length (:func:`path_times`). With GPS time the
-  path is parameterised by time instead (:func:`timed_path`): per ``time_bin`` the median arc length of the points
-  scanned then.
+  ground height there plus ``sensor_height``. With GPS time the path is parameterised by time
+  (:func:`timed_path`): per ``time_bin`` the median arc length of the points scanned then. Without it, a file in
+  scan order gets a pulse clock (:class:`PulseClock`): the profile plane's yaw from the scan-line stripes on the
+  ground (:func:`profile_slopes`), two crossed heads told apart (:func:`scan_heads`), each return's sensor where
+  its yawed scan line meets the path, and pulses counted per head from the angles between consecutive returns.
+  A file out of scan order falls back to each point's sensor straight across the track (:func:`path_times`).
 
 A campaign with an estimated path is marked so in the map and its Gaussians are widened by ``noise_factor`` in
 fusion (:class:`SensorParams`).
@@ -537,6 +539,8 @@ class PulseClock:
                 arcs.append(back)
             times.append(knots_t)
             arcs.append(knots_s)
+        if not times:  # too few returns to count (adjacent_share is then 0: the caller does not use this clock)
+            return path_trajectory(self.path, source)
         t, a = np.concatenate(times), np.concatenate(arcs)
         keep = np.concatenate([[True], np.diff(t) > 0])
         return Trajectory(time=t[keep], xyz=self.path.at(a[keep]), source=source)

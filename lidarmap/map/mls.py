@@ -4,8 +4,8 @@ In this order: a trajectory file (the points need GPS time); per-point origins (
 nothing, then the sensor path estimated from the cloud (:mod:`lidarmap.facade.sensors`), placed in time by the
 GPS time when the points have it. The result is what :func:`lidarmap.map.update.fuse_campaign` takes: a
 :class:`~lidarmap.map.update.CampaignSource` whose chunks carry a ``gps_time`` on the clock of a
-:class:`~lidarmap.core.Trajectory` (the point number for origins, the arc length for a path estimated without GPS
-time), so that ``trajectory.position_at(gps_time)`` is every point's sensor.
+:class:`~lidarmap.core.Trajectory` (the point number for origins, a pulse count per scanner head for a path
+estimated without GPS time from a file in scan order, else the arc length), so that ``trajectory.position_at(gps_time)`` is every point's sensor.
 """
 
 from __future__ import annotations
@@ -47,6 +47,9 @@ log = logging.getLogger(__name__)
 #: A file whose consecutive returns (of one head) are adjacent pulses this often is in scan order: its order is
 #: the pulse order when it has no GPS time (:class:`~lidarmap.facade.sensors.PulseClock`).
 MIN_ADJACENT = 0.5
+
+#: Consecutive points kept together in the sample the path is estimated from.
+SAMPLE_BLOCK = 4096
 
 #: How a campaign's sensor positions were obtained (stored in the campaign's summary as ``sensors``).
 MODES = ("trajectory", "origins", "estimated from the cloud and GPS time", "estimated from the cloud")
@@ -119,12 +122,14 @@ def _origins_trajectory(header: PointsHeader, chunk_points: int, crs: Any, colum
 
 def _sample(header: PointsHeader, n_points: int, chunk_points: int, crs: Any, columns: str | None,
             params: SensorParams) -> dict[str, np.ndarray | None]:
-    """A stride sample (every k-th point, at most ``sample_points``) of xyz, classification and GPS time."""
+    """A sample (at most about ``sample_points``) of xyz, classification and GPS time: every k-th block of
+    ``SAMPLE_BLOCK`` consecutive points, so that the scan lines in it keep every return (their stripes on the
+    ground give the profile's yaw: :func:`~lidarmap.facade.sensors.profile_slopes`)."""
     stride = max(1, -(-n_points // params.sample_points))
     parts: dict[str, list] = {"xyz": [], "classification": [], "gps_time": []}
     first = 0
     for chunk in _stream(header, chunk_points, crs, columns):
-        pick = np.arange((-first) % stride, len(chunk), stride)
+        pick = np.flatnonzero(((first + np.arange(len(chunk))) // SAMPLE_BLOCK) % stride == 0)
         parts["xyz"].append(chunk.xyz[pick])
         for name in ("classification", "gps_time"):
             if name in chunk.attrs:
