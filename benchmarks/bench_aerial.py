@@ -31,6 +31,8 @@ import trimesh  # noqa: E402
 from lidarmap.aerial.eval import chamfer_hausdorff, score_building_voxels  # noqa: E402
 from lidarmap.aerial.pipeline import PipelineConfig, RunParams, run_pipeline  # noqa: E402
 from lidarmap.aerial.voxel import VoxelParams
+from lidarmap.export.gltf import planar_faces_mesh  # noqa: E402
+from lidarmap.export.planar import PlanarParams, planar_faces  # noqa: E402
 from lidarmap.io.footprints import read_footprints  # noqa: E402
 from lidarmap.io.las import read_las  # noqa: E402
 from lidarmap.io.voxels import read_voxels  # noqa: E402
@@ -149,6 +151,28 @@ def mesh_section(truth, variants: dict[str, dict]) -> None:
                          *surface_rms(building, true_mesh)])
         m = np.mean(rows, axis=0)
         print(f"| {name} | {m[0]:.3f} | {m[1]:.2f} | {m[2]:.3f} | {m[3]:.2f} | {m[4]:.3f} | {100 * m[5]:.2f} |")
+    lod22_section(truth, variants["densify, flatten (default)"])
+
+
+def lod22_section(truth, variant: dict) -> None:
+    """The default variant's LoD 2.2 solids (``buildings.city.json``: the mesh as planar faces) against the truth,
+    next to the mesh they come from: snapping moves the faces' vertices onto their planes."""
+    print("\nLoD 2.2 planar faces of the default variant's meshes against the true surfaces (same samples; the mesh "
+          "row is the surface mesh above):\n")
+    print("| LoD 2.2 representation | Chamfer m | Hausdorff m | faces / building (mean) |")
+    print("|---|---|---|---|")
+    for label, params in (("surface mesh (triangles)", None), ("planar faces, mesh vertices (snap = false)",
+                                                               PlanarParams(snap=False)),
+                          ("planar faces, snapped (default)", PlanarParams())):
+        rows = []
+        for record in variant["result"].records:
+            surface = trimesh.load(variant["out"] / "buildings" / record["id"] / "mesh.ply", process=False)
+            faces = planar_faces(surface.vertices, surface.faces, params) if params else None
+            shape = planar_faces_mesh(faces) if faces else surface
+            d = chamfer_hausdorff(shape, truth.building(int(record["id"])).mesh(), n_samples=5000)
+            rows.append([d["chamfer"], d["hausdorff"], len(faces) if faces else len(surface.faces)])
+        m = np.mean(rows, axis=0)
+        print(f"| {label} | {m[0]:.3f} | {m[1]:.2f} | {m[2]:.0f} |")
 
 
 def speed_section(variants: dict[str, dict]) -> None:

@@ -15,6 +15,10 @@ PointNet++ (the shipped model) against the named baseline, the geometric-feature
   of the points of :func:`lidarmap.segment.vegetation.tree_like` predicted building, rule applied to each held-out
   part's own labels) and the share of the points the model adds to class 6 that are tree-like; on the simulated
   city, the share of the true vegetation predicted building;
+* class 5 written with ``--write-vegetation`` (PointNet++ with the filter): of the points written high vegetation,
+  the share the data labels building (6), ground or water (2, 9), and vegetation (IGN: 3/4/5; AHN3 has no
+  vegetation label, so the tree-like rule stands in: a lower bound); and the share of the true high vegetation
+  (IGN 5, AHN3 tree-like, simulated truth 5) written 5;
 * throughput: input points per second of ``predict`` (features, windows with their overlap, network, vegetation
   filter), 2 threads.
 
@@ -56,6 +60,7 @@ from lidarmap.segment.modelfile import SegmentModel, load_model  # noqa: E402
 from lidarmap.segment.predict import (  # noqa: E402
     PredictParams,
     apply_classes,
+    confident_vegetation,
     predict,
     without_vegetation,
 )
@@ -97,11 +102,36 @@ def held_out(models: dict, params: PredictParams) -> tuple[dict, dict]:
                 building = prob >= params.threshold
                 results[(variant, name)] = {**evaluate_classes(truth, building),
                                             "trees": tree_scores(trees, truth, building)}
+            if method == "pointnet2":
+                written = written_vegetation(hidden, probs["pointnet2"], params)
+                results[("pointnet2", name)]["class5"] = class5_scores(written, truth, trees)
     for variant in {v for v, _ in results}:
         parts = [results[(variant, n)] for n, _ in data.held_out]
         total = sum(np.asarray(r["confusion"]["matrix"]) for r in parts)
         results[(variant, "total")] = {**scores(total), "trees": combine_tree_scores([r["trees"] for r in parts])}
     return results, {"seconds": seconds, "points": points, "parts": [n for n, _ in data.held_out]}
+
+
+def written_vegetation(cloud, prob: np.ndarray, params: PredictParams) -> np.ndarray:
+    """The points ``segment predict --write-vegetation`` writes as class 5."""
+    given = cloud.attrs["classification"]
+    return confident_vegetation(cloud, apply_classes(given, prob, params.threshold, params.union), params)
+
+
+#: Real vegetation labels (IGN: low, medium, high vegetation) and high vegetation alone.
+VEGETATION_LABELS, HIGH_VEGETATION = (3, 4, 5), 5
+
+
+def class5_scores(written: np.ndarray, truth: np.ndarray, tree_like: np.ndarray) -> dict:
+    """What the class-5 points are by the data's labels, and the share of the true high vegetation they reach
+    (IGN class 5; where a file has none, the tree-like points)."""
+    n = int(written.sum())
+    labelled_veg = np.isin(truth, VEGETATION_LABELS)
+    high = truth == HIGH_VEGETATION if (truth == HIGH_VEGETATION).any() else tree_like
+    share = (lambda m: float(m[written].mean())) if n else (lambda m: float("nan"))
+    return {"written": n, "building": share(truth == 6), "ground_water": share(np.isin(truth, (2, 9))),
+            "vegetation": share(labelled_veg | tree_like), "high_vegetation_points": int(high.sum()),
+            "high_vegetation_recall": float(written[high].mean()) if high.any() else float("nan")}
 
 
 def simulated(models: dict, params: PredictParams, seed: int) -> dict:
@@ -124,6 +154,9 @@ def simulated(models: dict, params: PredictParams, seed: int) -> dict:
         for variant, prob in probs.items():
             out[variant] = simulated_scores(given, prob, params, true_building, unlabelled, wall, roof, vegetation)
             out[variant].update(points=len(cloud), seconds=took)
+        if "pointnet2" in probs:
+            written = written_vegetation(cloud, probs["pointnet2"], params)
+            out["pointnet2"]["class5"] = class5_scores(written, truth.classification, vegetation)
     return out
 
 
@@ -176,6 +209,23 @@ def print_held_out(real: dict, info: dict, variants: list[str]) -> None:
           f"(worst {worst:.4f}).\n")
 
 
+def print_class5(real: dict, info: dict, sim: dict, seed: int) -> None:
+    print("### Class 5 written with `--write-vegetation` (PointNet++ with the filter)\n")
+    print("What the points written high vegetation are by the data's labels (labels removed for the prediction, "
+          "used for scoring only). Vegetation = IGN classes 3/4/5 or, where a file has no vegetation label (AHN3), "
+          "the tree-like rule (a lower bound: crowns nearer than 3 m to a building do not count). High-vegetation "
+          "recall = share of IGN class 5 (AHN3: tree-like; simulated: true vegetation) written 5.\n")
+    print("| part | written class 5 | labelled building | ground / water | vegetation | high-vegetation points "
+          "| recall |")
+    print("|---|---|---|---|---|---|---|")
+    rows = [(p, real[("pointnet2", p)]["class5"]) for p in info["parts"]] + [(f"simulated seed {seed}",
+                                                                             sim["pointnet2"]["class5"])]
+    for part, c in rows:
+        print(f"| {part} | {c['written']:,} | {c['building']:.4f} | {c['ground_water']:.4f} | {c['vegetation']:.4f} "
+              f"| {c['high_vegetation_points']:,} | {c['high_vegetation_recall']:.4f} |")
+    print()
+
+
 def print_simulated(sim: dict, seed: int, variants: list[str]) -> None:
     print(f"### Simulated city (seed {seed}), delivered labels as input\n")
     first = sim["pointnet2"]
@@ -221,6 +271,7 @@ def main() -> None:
     variants = ["pointnet2", UNFILTERED, "baseline"]
     print_held_out(real, info, variants)
     print_simulated(sim, args.sim_seed, variants)
+    print_class5(real, info, sim, args.sim_seed)
 
     print(f"### Inference throughput ({THREADS} threads, CPU)\n")
     print("Input points per second of `predict` (features + ground estimate + overlapping windows + network, or "

@@ -16,11 +16,14 @@ from shapely.geometry import Polygon
 
 from lidarmap.core import Trajectory
 from lidarmap.facade.sensors import (
+    PulseClock,
     SensorParams,
     estimate_path,
+    ground_points,
     origin_knots,
     path_times,
     path_trajectory,
+    profile_slopes,
 )
 from lidarmap.io.ply import iter_ply
 from lidarmap.io.points import read_points
@@ -216,10 +219,17 @@ def test_update_without_trajectory_or_origins_estimates_the_path(scene, tmp_path
 
     true = read_trajectory(out / "trajectory_1.csv")
     cloud = read_points(out / "mls_1.ply")
-    path_est = estimate_path(cloud.xyz, cloud.attrs["classification"], SensorParams())
-    estimate = path_trajectory(path_est).position_at(path_times(path_est, cloud.xyz[:, :2]))
+    params = SensorParams()
+    path_est = estimate_path(cloud.xyz, cloud.attrs["classification"], params)
+    across = path_trajectory(path_est).position_at(path_times(path_est, cloud.xyz[:, :2]))
+    clock = PulseClock(path_est, profile_slopes(path_est, ground_points(cloud.xyz, cloud.attrs["classification"],
+                                                                        params.cell), params))
+    estimate = clock.trajectory([cloud]).position_at(clock(0, cloud))  # what map update does with bare.ply
+    assert len(clock.slopes) == 1 and abs(np.degrees(np.arctan(clock.slopes[0]))) < 2.0  # a profiler across
     error = np.linalg.norm(estimate - true.position_at(cloud.attrs["gps_time"]), axis=1)
-    assert np.median(error) < 0.5, np.median(error)
+    before = np.linalg.norm(across - true.position_at(cloud.attrs["gps_time"]), axis=1)
+    assert np.median(error) < 0.5 and np.median(error) <= np.median(before) + 0.05, (np.median(error),
+                                                                                     np.median(before))
     assert isinstance(true, traj)
     path = tmp_path / "e.lmap"
     code, _, err = run("map", "update", path, "--points", out / "bare.ply", "-f", out / "footprints.geojson")

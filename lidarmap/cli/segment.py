@@ -148,19 +148,23 @@ def predict_command(
     threshold: Optional[float] = typer.Option(None, "--threshold", help="Building probability threshold "
                                               "(default 0.5)."),
     vegetation: Optional[bool] = VegetationOption,
+    write_vegetation: Optional[bool] = typer.Option(None, "--write-vegetation/--no-write-vegetation", help="Also "
+                                                    "write class 5 (high vegetation) for confident vegetation "
+                                                    "points (default off; [segment] write_vegetation)."),
     seed: Optional[int] = SeedOption,
     device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP),
     crs: Optional[str] = CrsOption,
     config: Optional[Path] = ConfigOption,
 ) -> None:
-    """Classify building points: class 6 where predicted, extra dimension building_probability; order kept."""
+    """Classify building points: class 6 where predicted (class 5 for confident vegetation with
+    --write-vegetation), extra dimension building_probability; order kept."""
     from lidarmap.io.atomic import write_text_atomic
     from lidarmap.io.las import write_las
     from lidarmap.io.outdir import atomic_out_dir, claim_out_dir
     from lidarmap.segment.predict import segmented_cloud
 
     params = _predict_params(config, union=union, threshold=threshold, seed=seed, device=device,
-                             vegetation=vegetation)
+                             vegetation=vegetation, write_vegetation=write_vegetation)
     check_inputs(inputs)
     items = [Input(path, None, _prep_parts(path)) for path in inputs]
     sources = {p.resolve() for item in items for p in ([item.path] if item.parts is None else

@@ -482,7 +482,8 @@ def _mesh_solid(v: _Vertices, vertices: np.ndarray, faces: np.ndarray,
                 params: PlanarParams = PlanarParams()) -> dict[str, Any] | None:
     """The closed mesh as an LoD 2.2 ``Solid`` of planar faces (:func:`lidarmap.export.planar.planar_faces`), one
     semantic surface per face (Roof/Wall/GroundSurface by its normal, ``lidarmap_planarity``: the largest distance
-    of its vertices to its plane, m)."""
+    of a vertex of its polygons to that polygon's plane, m, at most ``params.tolerance`` when snapping); a face
+    split into planar triangles (or polygons) lists them all under its one semantic surface."""
     boundaries, semantics, values = [], [], []
     for face in planar_faces(vertices, faces, params):
         polygons = [p for rings in face.polygons for p in v.polygons(rings)]

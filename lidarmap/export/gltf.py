@@ -42,8 +42,8 @@ from lidarmap.export.planar import ROOF_NZ
 from lidarmap.io.atomic import write_bytes_atomic
 
 __all__ = ["EPSILON_FULL", "KINDS", "ORIGIN_NODE", "ROOT_NODE", "UNKNOWN_OFFSET", "GlbBuilding", "aerial_glb_building",
-           "epsilon_colours", "glb_building_ids", "glb_bytes", "map_glb_buildings", "map_to_glb", "read_glb_json",
-           "triangulate_rings", "write_glb"]
+           "epsilon_colours", "glb_building_ids", "glb_bytes", "map_glb_buildings", "map_to_glb",
+           "planar_faces_mesh", "read_glb_json", "triangulate_rings", "write_glb"]
 
 #: Surface kinds, one mesh (and one material) each.
 KINDS = ("roof", "wall", "ground", "window", "door", "unknown")
@@ -245,6 +245,23 @@ def triangulate_rings(rings: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     backwards = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]) @ normal < 0
     faces[backwards] = faces[backwards][:, ::-1]  # wound like the exterior ring: front faces look out
     return vertices, faces
+
+
+def planar_faces_mesh(faces: Iterable[Any]) -> trimesh.Trimesh:
+    """The polygons of :class:`lidarmap.export.planar.PlanarFace` objects as one triangle mesh (ear clipping per
+    polygon; vertices not merged): what the LoD 2.2 solid looks like, for distances to other surfaces."""
+    vertices, triangles, offset = [], [], 0
+    for face in faces:
+        for rings in face.polygons:
+            v, f = triangulate_rings(rings)
+            t = v[f]
+            f = f[np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1) > 1e-12]  # no slivers
+            vertices.append(v)
+            triangles.append(f + offset)
+            offset += len(v)
+    if not vertices:
+        return trimesh.Trimesh()
+    return trimesh.Trimesh(vertices=np.vstack(vertices), faces=np.vstack(triangles), process=False)
 
 
 class _Accumulator:

@@ -48,7 +48,10 @@ def campaign_track(trajectory: Trajectory, t_min: float, t_max: float, step: flo
     if cum[-1] <= 0:
         return pos[:1]
     samples = np.interp(np.arange(0.0, cum[-1] + step, step), cum, times)
-    return trajectory.position_at(np.clip(samples, trajectory.time[0], trajectory.time[-1]))
+    track = trajectory.position_at(np.clip(samples, trajectory.time[0], trajectory.time[-1]))
+    # a place passed twice (a clock counting two scanner heads one after the other) is tested once
+    _, first = np.unique(np.round(track / (0.5 * step)).astype(np.int64), axis=0, return_index=True)
+    return track[np.sort(first)]
 
 
 def campaign_data(xyz: np.ndarray, gps: np.ndarray, ground: np.ndarray, building: np.ndarray,

@@ -11,10 +11,12 @@ The façade steps need the origin of every point's pulse (occlusion ray tracing,
   h² / (h² + c²)), so the ridge of the smoothed ground-point density on a 1 m grid is the path; its skeleton's
   longest branch gives the order; the cross-track position is refined per 2 m of track as the median offset of the
   ground points within ``refine_window`` of it (the density is symmetric about the nadir), and the height is the
-  ground height there plus ``sensor_height``. Every point's sensor is then the path point its position projects to
-  (the profile plane is across the track): its "time" is that arc length (:func:`path_times`). With GPS time the
-  path is parameterised by time instead (:func:`timed_path`): per ``time_bin`` the median arc length of the points
-  scanned then.
+  ground height there plus ``sensor_height``. With GPS time the path is parameterised by time
+  (:func:`timed_path`): per ``time_bin`` the median arc length of the points scanned then. Without it, a file in
+  scan order gets a pulse clock (:class:`PulseClock`): the profile plane's yaw from the scan-line stripes on the
+  ground (:func:`profile_slopes`), two crossed heads told apart (:func:`scan_heads`), each return's sensor where
+  its yawed scan line meets the path, and pulses counted per head from the angles between consecutive returns.
+  A file out of scan order falls back to each point's sensor straight across the track (:func:`path_times`).
 
 A campaign with an estimated path is marked so in the map and its Gaussians are widened by ``noise_factor`` in
 fusion (:class:`SensorParams`).
@@ -57,13 +59,18 @@ class SensorParams:
         noise_factor (2.0): the Gaussians a campaign with an estimated path contributes to fusion are this many
             times wider (its sensor positions, hence its occlusion and point weights, are less certain).
         sample_points (2000000): points (a stride sample) the path estimation looks at.
+        stripe_reach (6.0): without GPS time, the scan lines' direction on the ground (the profile plane's yaw) is
+            measured on the ground points within this distance across the path (farther, profiles lie farther
+            apart than the pulses of one profile).
+        second_head (0.3): a second stripe direction at least this share of the first's peak means two crossed
+            scanner heads.
     """
 
     section = "sensors"
     constraints: ClassVar[dict[str, str]] = {
         "sensor_height": ">= 0", "cell": "> 0", "smooth": "> 0", "ridge_fraction": "(0, 1]",
         "refine_window": "> 0", "path_smooth": ">= 0", "time_bin": "> 0", "origin_tolerance": ">= 0",
-        "noise_factor": ">= 1", "sample_points": ">= 1000",
+        "noise_factor": ">= 1", "sample_points": ">= 1000", "stripe_reach": "> 0.5", "second_head": "(0, 1]",
     }
 
     sensor_height: float = 2.5
@@ -76,6 +83,8 @@ class SensorParams:
     origin_tolerance: float = 0.01
     noise_factor: float = 2.0
     sample_points: int = 2_000_000
+    stripe_reach: float = 6.0
+    second_head: float = 0.3
 
     def __post_init__(self) -> None:
         check_params(self)
@@ -333,3 +342,212 @@ def widen_layers(facades: list, factor: float) -> list:
             for layer in f.layers:
                 layer.sigma *= factor
     return facades
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Yawed and crossed profilers without GPS time: the scan-line stripes on the ground, a pulse clock from file order
+
+#: Pseudo-seconds per pulse of the clock of a path estimated without GPS time (a 100 kHz profiler's pulse period):
+#: the clock only orders the pulses and counts the missed ones; its scale sets the ray evidence's travel window.
+PULSE_SECONDS = 1e-5
+END_MARGIN = 8.0  # m at either end of a path where its direction is not trusted for the stripes' yaw
+MAX_YAW = 60.0  # degrees: steeper stripes are the spacing between profiles, not a profile
+NADIR = 1.5  # m across the path within which the two heads' ground lines meet: links there are not trusted
+LAGS = 40  # a return's predecessor on its own head's scan line is among the previous LAGS returns of the file
+
+
+def profile_slopes(path: SensorLine, ground: np.ndarray, params: SensorParams) -> np.ndarray:
+    """tan(yaw) of each scanner head's profile plane in the path's frame (along = tan(yaw) x across on a scan
+    line): the ground points' nearest neighbours lie on their own scan line (pulses a few cm apart, profiles
+    ``speed / rate`` apart), so the directions to them, folded to (-90°, 90°], peak at each head's yaw. One slope,
+    or two when a second peak at least ``second_head`` x the first lies more than 15° from it (crossed heads)."""
+    s, c = path.project(ground[:, :2])
+    near = (np.abs(c) > 0.5) & (np.abs(c) < params.stripe_reach)
+    if path.s[-1] > 4 * END_MARGIN:  # the path's ends are continued straight, their frame bent: not measured there
+        near &= (s > path.s[0] + END_MARGIN) & (s < path.s[-1] - END_MARGIN)
+    pts = np.column_stack([s[near], c[near]])
+    if len(pts) < 100:
+        return np.zeros(1)
+    _, k = cKDTree(pts).query(pts, k=[2, 3], workers=1)
+    d = pts[k.ravel()] - np.repeat(pts, 2, axis=0)
+    angle = (np.degrees(np.arctan2(d[:, 0], d[:, 1])) + 90.0) % 180.0 - 90.0
+    angle = angle[np.abs(angle) < MAX_YAW]
+    if len(angle) < 50:
+        return np.zeros(1)
+    hist = np.histogram(angle, bins=int(2 * MAX_YAW), range=(-MAX_YAW, MAX_YAW))[0].astype(np.float64)
+    hist = np.convolve(hist, [1.0, 2.0, 1.0], mode="same")
+    centres = np.arange(-MAX_YAW, MAX_YAW) + 0.5
+    first = int(np.argmax(hist))
+    far = np.abs(centres - centres[first]) > 15.0
+    peaks = [first]
+    if far.any():
+        second = int(np.flatnonzero(far)[np.argmax(hist[far])])
+        if hist[second] >= params.second_head * hist[first]:
+            peaks.append(second)
+    yaws = [float(np.mean(angle[np.abs(angle - centres[p]) <= 3.0])) for p in sorted(peaks)]
+    return np.tan(np.radians(yaws))
+
+
+def scan_heads(xyz: np.ndarray, s: np.ndarray, c: np.ndarray, slopes: np.ndarray) -> np.ndarray:
+    """Which head (index into ``slopes``) scanned each return of a file that interleaves two crossed profilers.
+
+    Every return is linked to the nearest of the previous ``LAGS`` returns of the file when it lies within 0.1 rad
+    of it (seen from the path): the next pulse of the same head's scan line. A link that runs over the ground
+    (more horizontal than vertical) votes for the head whose stripe direction it follows (within 8°); each chain of
+    links takes its majority. Chains without a vote (a wall seen without its foot) stay -1."""
+    n = len(xyz)
+    heads = np.full(n, -1, dtype=np.int64)
+    if len(slopes) < 2 or n < 2:
+        return np.zeros(n, dtype=np.int64) if len(slopes) < 2 else heads
+    best = np.full(n, np.inf)
+    pred = np.full(n, -1, dtype=np.int64)
+    r = np.maximum(np.hypot(c, xyz[:, 2] - np.median(xyz[:, 2])), 1.0)
+    active = np.arange(n)
+    for lag in range(1, LAGS + 1):
+        if lag == 5:  # most returns have found the next pulse of their line by now: only the others look farther
+            active = active[best[active] > 0.05]
+        ids = active[active >= lag]
+        dist = np.linalg.norm(xyz[ids] - xyz[ids - lag], axis=1) / r[ids]
+        better = dist < best[ids]
+        best[ids[better]], pred[ids[better]] = dist[better], ids[better] - lag
+    linked = np.flatnonzero(best < 0.2)
+    a, b = linked, pred[linked]
+    ds, dc, dz = s[a] - s[b], c[a] - c[b], xyz[a, 2] - xyz[b, 2]
+    flat = np.hypot(ds, dc) > 2.0 * np.abs(dz)
+    angle = (np.degrees(np.arctan2(ds, dc)) + 90.0) % 180.0 - 90.0
+    yaws = np.degrees(np.arctan(slopes))
+    diff = np.abs((angle[:, None] - yaws[None, :] + 90.0) % 180.0 - 90.0)
+    vote = np.where(flat & (diff.min(axis=1) <= 8.0), np.argmin(diff, axis=1), -1)
+    # a flat link along neither stripe, or one near the nadir (where both heads' lines meet), may join two heads
+    keep = (~flat | (vote >= 0)) & (np.minimum(np.abs(c[a]), np.abs(c[b])) > NADIR)
+    graph = coo_matrix((np.ones(int(keep.sum())), (a[keep], b[keep])), shape=(n, n))
+    _, chain = connected_components(graph, directed=False)
+    voted = vote >= 0
+    tally = np.zeros((chain.max() + 1, len(slopes)))
+    np.add.at(tally, (chain[a[voted]], vote[voted]), 1.0)
+    has = tally.sum(axis=1) > 0
+    label = np.where(has, np.argmax(tally, axis=1), -1)
+    heads = label[chain]
+    # a chain without a vote (a wall whose foot the scan line did not reach): the two heads fire together, so the
+    # file's returns next to its returns that belong to another, labelled chain are the other head's
+    for other in (np.arange(n - 1), np.arange(1, n)):
+        mine = other + 1 if other[0] == 0 else other - 1
+        ok = (heads[mine] < 0) & (heads[other] >= 0) & (chain[mine] != chain[other])
+        np.add.at(tally, (chain[mine[ok]], 1 - heads[other[ok]]), 1.0)
+    label = np.where(tally.sum(axis=1) > 0, np.argmax(tally, axis=1), -1)
+    return label[chain]
+
+
+HEAD_OFFSET = 1e4  # pseudo-seconds between the clocks of two heads (each head's pulses counted on its own)
+
+
+@dataclasses.dataclass
+class PulseClock:
+    """The clock of a campaign whose file holds its returns in scan order but no GPS time (docs/mls.md).
+
+    Each return's head is found (:func:`scan_heads`; -1: not found, clock ``len(slopes)``, taken as unyawed); its
+    sensor is the path point ``s - slope x c`` (its scan line meets the path there: the profile plane is yawed by
+    the head's slope); consecutive returns of one head, ``angle`` apart as seen from that sensor, are
+    ``round(angle / step)`` pulses apart. Each head counts its own pulses, ``PULSE_SECONDS`` per pulse, from
+    ``HEAD_OFFSET`` x its number: the ray evidence orders each head's pulses and counts the missed ones as with GPS
+    times. ``step`` is the profiler's angular step, the median angle between consecutive returns of the first
+    chunk (adjacent pulses). Call it on the chunks in file order (``first`` 0 starts over)."""
+
+    path: SensorLine
+    slopes: np.ndarray
+    step: float | None = None
+    adjacent_share: float = 1.0
+    _carry: dict = dataclasses.field(default_factory=dict)
+    _heads: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def heads(self) -> int:
+        return len(self.slopes) + 1  # the heads, and the returns whose head was not found
+
+    def __call__(self, first: int, chunk) -> np.ndarray:
+        return self.times(first, chunk.xyz)[0]
+
+    def times(self, first: int, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(clock, head, sensor arc length) of a chunk of returns in file order."""
+        if first == 0:
+            self._carry = {}
+        s, c = self.path.project(xyz[:, :2])
+        key = (first, len(xyz))
+        if key not in self._heads:  # every pass over the file finds the same heads: found once (1 byte a return)
+            self._heads[key] = scan_heads(xyz, s, c, self.slopes).astype(np.int8)
+        head = self._heads[key].astype(np.int64)
+        slope = np.append(self.slopes, 0.0)[head]
+        s_sensor = np.clip(s - slope * c, self.path.s[0], self.path.s[-1])
+        origin = self.path.at(s_sensor)
+        if self.step is None:
+            self._measure_step(xyz, origin, head)
+        clock = np.empty(len(xyz))
+        for h in range(self.heads):
+            ids = np.flatnonzero(np.where(head < 0, self.heads - 1, head) == h)
+            if len(ids):
+                clock[ids] = self._count(h, xyz[ids], origin[ids])
+        return clock, head, s_sensor
+
+    def _count(self, h: int, xyz: np.ndarray, origin: np.ndarray) -> np.ndarray:
+        last_xyz, last_clock = self._carry.get(h, (xyz[0], h * HEAD_OFFSET - PULSE_SECONDS))
+        prev = np.concatenate([last_xyz[None], xyz[:-1]])
+        pulses = np.maximum(np.rint(_angles(xyz, prev, origin) / self.step), 1.0)
+        clock = last_clock + np.cumsum(pulses) * PULSE_SECONDS
+        self._carry[h] = (xyz[-1], clock[-1])
+        return clock
+
+    def _measure_step(self, xyz: np.ndarray, origin: np.ndarray, head: np.ndarray) -> None:
+        angles = []
+        for h in range(len(self.slopes)):
+            ids = np.flatnonzero(head == h)
+            if len(ids) > 1:
+                angles.append(_angles(xyz[ids[1:]], xyz[ids[:-1]], origin[ids[1:]]))
+        a = np.concatenate(angles) if angles else np.zeros(0)
+        a = a[a > 0]
+        self.step = float(np.median(a)) if len(a) else np.radians(0.5)
+        self.adjacent_share = float(np.mean((a > 0.5 * self.step) & (a < 1.5 * self.step))) if len(a) else 0.0
+
+    def trajectory(self, chunks, source: str | None = None) -> Trajectory:
+        """The sensor path over this clock: per head, per 0.01 pseudo-s of its clock (about a profile), the median
+        sensor arc length of its returns; between two heads' clocks the path is run back to its start (the
+        reach test samples the trajectory in between)."""
+        parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        first = 0
+        for chunk in chunks:
+            parts.append(self.times(first, chunk.xyz))
+            first += len(chunk)
+        clock, head, s = (np.concatenate([p[k] for p in parts]) for k in range(3))
+        head = np.where(head < 0, self.heads - 1, head)
+        times, arcs = [], []
+        for h in range(self.heads):
+            ids = np.flatnonzero(head == h)
+            if len(ids) < 2:
+                continue
+            t = clock[ids]
+            edges = np.arange(t.min(), t.max() + 0.01, 0.01)
+            if len(edges) < 2:
+                edges = np.array([t.min(), t.max() + PULSE_SECONDS])
+            along = _binned_median(t, s[ids], edges)
+            ok = np.isfinite(along)
+            mids = 0.5 * (edges[:-1] + edges[1:])[ok]
+            knots_t = np.concatenate([[t.min() - 1.0], mids, [t.max() + 1.0]])
+            knots_s = np.concatenate([[along[ok][0]], along[ok], [along[ok][-1]]])
+            if times:  # back along the path from the previous head's end to this head's start
+                t0, t1 = times[-1][-1], knots_t[0]
+                back = np.linspace(arcs[-1][-1], knots_s[0], 50)[1:-1]
+                times.append(np.linspace(t0, t1, 50)[1:-1])
+                arcs.append(back)
+            times.append(knots_t)
+            arcs.append(knots_s)
+        if not times:  # too few returns to count (adjacent_share is then 0: the caller does not use this clock)
+            return path_trajectory(self.path, source)
+        t, a = np.concatenate(times), np.concatenate(arcs)
+        keep = np.concatenate([[True], np.diff(t) > 0])
+        return Trajectory(time=t[keep], xyz=self.path.at(a[keep]), source=source)
+
+
+def _angles(xyz: np.ndarray, prev: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Angle (radians) between the rays from ``origin`` to ``xyz`` and to ``prev``."""
+    u, v = xyz - origin, prev - origin
+    cos = np.einsum("ij,ij->i", u, v) / np.maximum(np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1), 1e-12)
+    return np.arccos(np.clip(cos, -1.0, 1.0))

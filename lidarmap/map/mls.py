@@ -4,8 +4,8 @@ In this order: a trajectory file (the points need GPS time); per-point origins (
 nothing, then the sensor path estimated from the cloud (:mod:`lidarmap.facade.sensors`), placed in time by the
 GPS time when the points have it. The result is what :func:`lidarmap.map.update.fuse_campaign` takes: a
 :class:`~lidarmap.map.update.CampaignSource` whose chunks carry a ``gps_time`` on the clock of a
-:class:`~lidarmap.core.Trajectory` (the point number for origins, the arc length for a path estimated without GPS
-time), so that ``trajectory.position_at(gps_time)`` is every point's sensor.
+:class:`~lidarmap.core.Trajectory` (the point number for origins, a pulse count per scanner head for a path
+estimated without GPS time from a file in scan order, else the arc length), so that ``trajectory.position_at(gps_time)`` is every point's sensor.
 """
 
 from __future__ import annotations
@@ -21,12 +21,15 @@ import numpy as np
 from lidarmap.core import Footprints, PointCloud, Trajectory
 from lidarmap.errors import InputError
 from lidarmap.facade.sensors import (
+    PulseClock,
     SensorParams,
     estimate_path,
+    ground_points,
     knots_trajectory,
     origin_knots,
     path_times,
     path_trajectory,
+    profile_slopes,
     timed_path,
 )
 from lidarmap.io.ply import ORIGIN_FIELDS
@@ -40,6 +43,13 @@ from lidarmap.io.trajectory import read_trajectory
 from lidarmap.map.update import CampaignSource
 
 log = logging.getLogger(__name__)
+
+#: A file whose consecutive returns (of one head) are adjacent pulses this often is in scan order: its order is
+#: the pulse order when it has no GPS time (:class:`~lidarmap.facade.sensors.PulseClock`).
+MIN_ADJACENT = 0.5
+
+#: Consecutive points kept together in the sample the path is estimated from.
+SAMPLE_BLOCK = 4096
 
 #: How a campaign's sensor positions were obtained (stored in the campaign's summary as ``sensors``).
 MODES = ("trajectory", "origins", "estimated from the cloud and GPS time", "estimated from the cloud")
@@ -112,12 +122,14 @@ def _origins_trajectory(header: PointsHeader, chunk_points: int, crs: Any, colum
 
 def _sample(header: PointsHeader, n_points: int, chunk_points: int, crs: Any, columns: str | None,
             params: SensorParams) -> dict[str, np.ndarray | None]:
-    """A stride sample (every k-th point, at most ``sample_points``) of xyz, classification and GPS time."""
+    """A sample (at most about ``sample_points``) of xyz, classification and GPS time: every k-th block of
+    ``SAMPLE_BLOCK`` consecutive points, so that the scan lines in it keep every return (their stripes on the
+    ground give the profile's yaw: :func:`~lidarmap.facade.sensors.profile_slopes`)."""
     stride = max(1, -(-n_points // params.sample_points))
     parts: dict[str, list] = {"xyz": [], "classification": [], "gps_time": []}
     first = 0
     for chunk in _stream(header, chunk_points, crs, columns):
-        pick = np.arange((-first) % stride, len(chunk), stride)
+        pick = np.flatnonzero(((first + np.arange(len(chunk))) // SAMPLE_BLOCK) % stride == 0)
         parts["xyz"].append(chunk.xyz[pick])
         for name in ("classification", "gps_time"):
             if name in chunk.attrs:
@@ -161,8 +173,16 @@ def mobile_campaign(points: Path, trajectory: Path | None, crs: Any, columns: st
     if sample["gps_time"] is not None:
         track = timed_path(path, sample["gps_time"], sample["xyz"][:, :2], params, str(points))
         return MobileCampaign(source(), track, MODES[2], params.noise_factor)
-    log.warning("%s: no trajectory, origins or GPS time: every point's sensor is taken across the track from it "
-                "(a yawed or crossed profiler breaks this; docs/mls.md)", points)
+    clock = PulseClock(path, profile_slopes(path, ground_points(sample["xyz"], sample["classification"],
+                                                                 params.cell), params))
+    track = clock.trajectory(_stream(header, chunk_points, crs, columns), str(points))
+    if clock.adjacent_share >= MIN_ADJACENT:
+        log.info("%s: no GPS time: pulses counted in file order, %d head(s) yawed %s deg, %.2f deg per pulse",
+                 points, len(clock.slopes), np.round(np.degrees(np.arctan(clock.slopes)), 1),
+                 np.degrees(clock.step))
+        return MobileCampaign(source(clock), track, MODES[3], params.noise_factor)
+    log.warning("%s: no trajectory, origins or GPS time, and the file is not in scan order: every point's sensor "
+                "is taken across the track from it (a yawed or crossed profiler breaks this; docs/mls.md)", points)
     return MobileCampaign(source(lambda first, chunk: path_times(path, chunk.xyz[:, :2])),
                           path_trajectory(path, str(points)), MODES[3], params.noise_factor, pulse_times=False)
 
