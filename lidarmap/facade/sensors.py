@@ -353,6 +353,8 @@ PULSE_SECONDS = 1e-5
 END_MARGIN = 8.0  # m at either end of a path where its direction is not trusted for the stripes' yaw
 MAX_YAW = 60.0  # degrees: steeper stripes are the spacing between profiles, not a profile
 NADIR = 1.5  # m across the path within which the two heads' ground lines meet: links there are not trusted
+NADIR_REF = 1.0  # m across the path: a return this close to the nadir has its sensor nearly straight across
+FILE_BLOCK = 512  # consecutive returns of the file over which the sensor's place is taken as one (about a profile)
 LAGS = 40  # a return's predecessor on its own head's scan line is among the previous LAGS returns of the file
 
 
@@ -434,8 +436,30 @@ def scan_heads(xyz: np.ndarray, s: np.ndarray, c: np.ndarray, slopes: np.ndarray
         mine = other + 1 if other[0] == 0 else other - 1
         ok = (heads[mine] < 0) & (heads[other] >= 0) & (chain[mine] != chain[other])
         np.add.at(tally, (chain[mine[ok]], 1 - heads[other[ok]]), 1.0)
-    label = np.where(tally.sum(axis=1) > 0, np.argmax(tally, axis=1), -1)
-    return label[chain]
+    label = np.where((tally.sum(axis=1) > 0) & (tally.max(axis=1) > tally.min(axis=1)), np.argmax(tally, axis=1), -1)
+    return _by_file_time(s, c, slopes, label[chain])
+
+
+def _by_file_time(s: np.ndarray, c: np.ndarray, slopes: np.ndarray, heads: np.ndarray) -> np.ndarray:
+    """Heads checked against the sensor's place at each return's moment: the file is in scan order, so the returns
+    near the nadir (within ``NADIR_REF`` across, where both heads' lines meet) of each block of ``FILE_BLOCK``
+    returns give the sensor's arc length then (their median); a return whose two head hypotheses put its sensor
+    more than 1 m apart takes the head whose sensor lies nearer to it (decisive for walls: 2 c tan(yaw) apart),
+    the others keep their chain's head, or without one take the nearer too (near the nadir either is right)."""
+    n = len(s)
+    nadir = np.flatnonzero(np.abs(c) < NADIR_REF)
+    if len(nadir) < 10:
+        return heads
+    block = nadir // FILE_BLOCK
+    order = np.lexsort((s[nadir], block))
+    blocks, start, count = np.unique(block[order], return_index=True, return_counts=True)
+    sorted_s = s[nadir][order]
+    median = 0.5 * (sorted_s[start + (count - 1) // 2] + sorted_s[start + count // 2])
+    reference = np.interp(np.arange(n), (blocks + 0.5) * FILE_BLOCK, median)
+    miss = np.abs(s[:, None] - slopes[None, :] * c[:, None] - reference[:, None])
+    nearest = np.argmin(miss, axis=1)
+    decisive = np.abs(miss[:, 0] - miss[:, 1]) > 1.0
+    return np.where(decisive | (heads < 0), nearest, heads)
 
 
 HEAD_OFFSET = 1e4  # pseudo-seconds between the clocks of two heads (each head's pulses counted on its own)
