@@ -47,6 +47,7 @@ from lidarmap.facade.sensors import (
     path_trajectory,
     profile_slopes,
     timed_path,
+    with_height,
 )
 from lidarmap.io.ply import iter_ply, read_ply_header
 from lidarmap.io.points import read_points
@@ -146,7 +147,8 @@ def _true_yaws(scene: Path, campaign_id: int) -> str:
 def path_errors(scene: Path, truth, files: dict[int, Path]) -> list[str]:
     """Per campaign: the estimated path's error against the true pulse origins with GPS time, from the cloud alone
     as before this round (each point's sensor across the track from it) and with the pulse clock (profile yaw from
-    the ground stripes, heads split, file order); the estimated yaws beside the simulator's."""
+    the ground stripes, heads split, file order; the height from the ground strip); the estimated yaws beside the
+    simulator's."""
     rows = []
     params = SensorParams()
     for c in truth.campaigns:
@@ -154,10 +156,13 @@ def path_errors(scene: Path, truth, files: dict[int, Path]) -> list[str]:
         true = read_trajectory(c.trajectory).position_at(cloud.attrs["gps_time"])
         classes = cloud.attrs["classification"]
         path = estimate_path(cloud.xyz, classes, params)
-        across = path_trajectory(path).position_at(path_times(path, cloud.xyz[:, :2]))
+        across = path_trajectory(path).position_at(path_times(path, cloud.xyz[:, :2]))  # before: fixed 2.5 m
+        ground = ground_points(cloud.xyz, classes, params.cell)
+        slopes = profile_slopes(path, ground, params)
+        path = with_height(path, ground, slopes, params)  # as map update does since round 2
         timed = timed_path(path, cloud.attrs["gps_time"], cloud.xyz[:, :2], params).position_at(
             cloud.attrs["gps_time"])
-        clock = PulseClock(path, profile_slopes(path, ground_points(cloud.xyz, classes, params.cell), params))
+        clock = PulseClock(path, slopes)
         track = clock.trajectory([cloud])
         pulses = track.position_at(clock(0, cloud))
         yaws = "/".join(f"{y:.1f}" for y in np.degrees(np.arctan(clock.slopes)))
@@ -170,7 +175,8 @@ def path_errors(scene: Path, truth, files: dict[int, Path]) -> list[str]:
     return rows
 
 
-def bench_modes(tmp: Path, seed: int, buildings: int, campaigns: int, family: str = "standard") -> list[str]:
+def bench_modes(tmp: Path, seed: int, buildings: int, campaigns: int, family: str = "standard",
+                picked: set[int] | None = None) -> list[str]:
     scene = tmp / f"scene_{family}"
     simulate(scene, SimParams(seed=seed, buildings=buildings, campaigns=campaigns, mls_format="ply",
                               mls_origins=True, family=family))
@@ -192,6 +198,8 @@ def bench_modes(tmp: Path, seed: int, buildings: int, campaigns: int, family: st
              ("no footprints (origins)", with_origins, False, False)]
     rows, reference = [], None
     for k, (name, files, trajectory, footprints) in enumerate(modes):
+        if picked is not None and k not in picked:
+            continue
         f1s, seconds, found = run_mode(scene, truth, files, trajectory, footprints, tmp / f"m{k}.lmap")
         reference = reference or (f1s, found)
         ratio = f1s[-1] / reference[0][-1] if reference[0][-1] > 0 else float("nan")
@@ -239,6 +247,8 @@ def main() -> None:
     ap.add_argument("--skip-modes", action="store_true")
     ap.add_argument("--family", default="standard", choices=["standard", "hard"])
     ap.add_argument("--skip-read", action="store_true")
+    ap.add_argument("--modes", default="", help="only these sensor-position modes (comma-separated numbers, 0 = the "
+                    "trajectory reference, always run; 1 origins, 2 cloud + GPS time, 3 cloud alone, 4 no footprints)")
     ap.add_argument("--work", type=Path, help="keep the simulated data here (reused by the next run)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench_mls_") as tmp_name:
@@ -251,7 +261,8 @@ def main() -> None:
                                               *bench_read(tmp, args.read_points), ""])]
         print("\n".join(lines), flush=True)
         if not args.skip_modes:
-            print("\n".join(bench_modes(tmp, args.seed, args.buildings, args.campaigns, args.family)) + "\n",
+            picked = {0, *(int(k) for k in args.modes.split(",") if k)} if args.modes else None
+            print("\n".join(bench_modes(tmp, args.seed, args.buildings, args.campaigns, args.family, picked)) + "\n",
                   flush=True)
         if args.big:
             print("| update | time | result |\n|---|---|---|\n" + "\n".join(bench_big(tmp, args.seed, 5_000_000)),

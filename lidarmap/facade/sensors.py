@@ -45,8 +45,10 @@ GROUND = 2
 class SensorParams:
     """Sensor positions without a trajectory file (TOML table ``[sensors]``). Lengths in metres.
 
-        sensor_height (2.5): height of the scanner above the road when the path is estimated (typical MLS vans:
-            2-3 m; the simulator's default is 2.5).
+        sensor_height (2.5): height of the scanner above the road when the path is estimated and its height is not
+            measured (typical MLS vans: 2-3 m; the simulator's default is 2.5).
+        measure_height (True): measure the scanner's height from the width of the ground strip under it
+            (:func:`strip_height`); sensor_height where that fails.
         cell (1.0): grid cell of the ground-point density whose ridge is the path.
         smooth (1.5): standard deviation (m) of the Gaussian smoothing of that density.
         ridge_fraction (0.5): cells whose smoothed density reaches this fraction of the 99th percentile form the
@@ -85,6 +87,7 @@ class SensorParams:
     sample_points: int = 2_000_000
     stripe_reach: float = 6.0
     second_head: float = 0.3
+    measure_height: bool = True
 
     def __post_init__(self) -> None:
         check_params(self)
@@ -353,6 +356,8 @@ PULSE_SECONDS = 1e-5
 END_MARGIN = 8.0  # m at either end of a path where its direction is not trusted for the stripes' yaw
 MAX_YAW = 60.0  # degrees: steeper stripes are the spacing between profiles, not a profile
 NADIR = 1.5  # m across the path within which the two heads' ground lines meet: links there are not trusted
+NADIR_REF = 1.0  # m across the path: a return this close to the nadir has its sensor nearly straight across
+FILE_BLOCK = 512  # consecutive returns of the file over which the sensor's place is taken as one (about a profile)
 LAGS = 40  # a return's predecessor on its own head's scan line is among the previous LAGS returns of the file
 
 
@@ -434,8 +439,30 @@ def scan_heads(xyz: np.ndarray, s: np.ndarray, c: np.ndarray, slopes: np.ndarray
         mine = other + 1 if other[0] == 0 else other - 1
         ok = (heads[mine] < 0) & (heads[other] >= 0) & (chain[mine] != chain[other])
         np.add.at(tally, (chain[mine[ok]], 1 - heads[other[ok]]), 1.0)
-    label = np.where(tally.sum(axis=1) > 0, np.argmax(tally, axis=1), -1)
-    return label[chain]
+    label = np.where((tally.sum(axis=1) > 0) & (tally.max(axis=1) > tally.min(axis=1)), np.argmax(tally, axis=1), -1)
+    return _by_file_time(s, c, slopes, label[chain])
+
+
+def _by_file_time(s: np.ndarray, c: np.ndarray, slopes: np.ndarray, heads: np.ndarray) -> np.ndarray:
+    """Heads checked against the sensor's place at each return's moment: the file is in scan order, so the returns
+    near the nadir (within ``NADIR_REF`` across, where both heads' lines meet) of each block of ``FILE_BLOCK``
+    returns give the sensor's arc length then (their median); a return whose two head hypotheses put its sensor
+    more than 1 m apart takes the head whose sensor lies nearer to it (decisive for walls: 2 c tan(yaw) apart),
+    the others keep their chain's head, or without one take the nearer too (near the nadir either is right)."""
+    n = len(s)
+    nadir = np.flatnonzero(np.abs(c) < NADIR_REF)
+    if len(nadir) < 10:
+        return heads
+    block = nadir // FILE_BLOCK
+    order = np.lexsort((s[nadir], block))
+    blocks, start, count = np.unique(block[order], return_index=True, return_counts=True)
+    sorted_s = s[nadir][order]
+    median = 0.5 * (sorted_s[start + (count - 1) // 2] + sorted_s[start + count // 2])
+    reference = np.interp(np.arange(n), (blocks + 0.5) * FILE_BLOCK, median)
+    miss = np.abs(s[:, None] - slopes[None, :] * c[:, None] - reference[:, None])
+    nearest = np.argmin(miss, axis=1)
+    decisive = np.abs(miss[:, 0] - miss[:, 1]) > 1.0
+    return np.where(decisive | (heads < 0), nearest, heads)
 
 
 HEAD_OFFSET = 1e4  # pseudo-seconds between the clocks of two heads (each head's pulses counted on its own)
@@ -551,3 +578,60 @@ def _angles(xyz: np.ndarray, prev: np.ndarray, origin: np.ndarray) -> np.ndarray
     u, v = xyz - origin, prev - origin
     cos = np.einsum("ij,ij->i", u, v) / np.maximum(np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1), 1e-12)
     return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+HEIGHT_RANGE = (1.0, 6.0)  # m: a measured scanner height outside this is not trusted (sensor_height instead)
+HEIGHT_WINDOW = 10.0  # m of path per measurement of the ground strip's width
+HEIGHT_REACH = 8.0  # m across the path over which the strip is profiled
+
+
+def strip_height(path: SensorLine, ground: np.ndarray, slopes: np.ndarray) -> float | None:
+    """The scanner's height above the ground from the ground strip under it: a profiler at height h puts
+    h cos(yaw) / (h² cos²(yaw) + c²) ground points per metre at cross-track distance c (pulses evenly spaced in
+    angle; yawed, its line on the ground is 1 / cos(yaw) longer), so the strip's density falls to half its peak at
+    c = ±h cos(yaw). Per ``HEIGHT_WINDOW`` of path the density across (0.1 m bins, smoothed over 0.15 m) gives the
+    larger of the two half widths at half maximum (a parked car shadows one side early, never widens it); their
+    median / cos(yaw) is h. ``None`` when no window has a clear peak or h falls outside ``HEIGHT_RANGE``."""
+    s, c = path.project(ground[:, :2])
+    keep = np.abs(c) < HEIGHT_REACH
+    if path.s[-1] > 4 * END_MARGIN:
+        keep &= (s > path.s[0] + END_MARGIN) & (s < path.s[-1] - END_MARGIN)
+    if keep.sum() < 1000:
+        return None
+    s, c = s[keep], c[keep]
+    bin_ = 0.1
+    bins = int(2 * HEIGHT_REACH / bin_)
+    window = np.floor((s - s.min()) / HEIGHT_WINDOW).astype(np.int64)
+    density = np.zeros((window.max() + 1, bins))
+    np.add.at(density, (window, np.clip(((c + HEIGHT_REACH) / bin_).astype(np.int64), 0, bins - 1)), 1.0)
+    density = ndimage.gaussian_filter1d(density, 1.5, axis=1)
+    halves = [w for w in (_half_width(row, bin_) for row in density) if w is not None]
+    if not halves:
+        return None
+    height = float(np.median(halves)) / float(np.mean(np.cos(np.arctan(slopes))))
+    return height if HEIGHT_RANGE[0] <= height <= HEIGHT_RANGE[1] else None
+
+
+def _half_width(row: np.ndarray, bin_: float) -> float | None:
+    """The larger distance from the peak of ``row`` to where it falls to half the peak (linear between bins)."""
+    k = int(np.argmax(row))
+    if row[k] < 20:
+        return None
+    half = 0.5 * row[k]
+    left, right = np.flatnonzero(row[:k] < half), np.flatnonzero(row[k:] < half)
+    if not len(left) or not len(right):
+        return None
+    a, b = left[-1], k + right[0]
+    left_width = (k - a) - (half - row[a]) / max(row[a + 1] - row[a], 1e-9)
+    right_width = (b - 1 - k) + (row[b - 1] - half) / max(row[b - 1] - row[b], 1e-9)
+    return max(left_width, right_width) * bin_
+
+
+def with_height(path: SensorLine, ground: np.ndarray, slopes: np.ndarray, params: SensorParams) -> SensorLine:
+    """The path raised to the measured scanner height (:func:`strip_height`) when ``measure_height``."""
+    height = strip_height(path, ground, slopes) if params.measure_height else None
+    if height is None:
+        return path
+    xyz = path.xyz.copy()
+    xyz[:, 2] += height - params.sensor_height
+    return SensorLine(xyz, path.s)

@@ -31,6 +31,7 @@ from lidarmap.facade.sensors import (
     path_trajectory,
     profile_slopes,
     timed_path,
+    with_height,
 )
 from lidarmap.io.ply import ORIGIN_FIELDS
 from lidarmap.io.points import (
@@ -169,12 +170,14 @@ def mobile_campaign(points: Path, trajectory: Path | None, crs: Any, columns: st
                               track, MODES[1], 1.0, pulse_times=False)
     sample = _sample(header, n, chunk_points, crs, columns, params)
     path = estimate_path(sample["xyz"], sample["classification"], params, str(points))
+    ground = ground_points(sample["xyz"], sample["classification"], params.cell)
+    slopes = profile_slopes(path, ground, params)
+    path = with_height(path, ground, slopes, params)
     log.info("%s: sensor path estimated from the cloud (%.0f m)", points, path.s[-1])
     if sample["gps_time"] is not None:
         track = timed_path(path, sample["gps_time"], sample["xyz"][:, :2], params, str(points))
         return MobileCampaign(source(), track, MODES[2], params.noise_factor)
-    clock = PulseClock(path, profile_slopes(path, ground_points(sample["xyz"], sample["classification"],
-                                                                 params.cell), params))
+    clock = PulseClock(path, slopes)
     track = clock.trajectory(_stream(header, chunk_points, crs, columns), str(points))
     if clock.adjacent_share >= MIN_ADJACENT:
         log.info("%s: no GPS time: pulses counted in file order, %d head(s) yawed %s deg, %.2f deg per pulse",
