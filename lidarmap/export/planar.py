@@ -287,16 +287,27 @@ def _face_rings(vertices: np.ndarray, faces: np.ndarray, normal: np.ndarray) -> 
     return [[loops[first], *(loop for i, loop in enumerate(loops) if i != first)]]
 
 
-def _valid_in_plane(polygons: list[list[np.ndarray]], normal: np.ndarray, point: np.ndarray) -> bool:
-    """Whether every polygon (rings of 3D points) is OGC-valid projected onto the plane, no vertex repeated."""
+#: A polygon is kept only when no vertex is closer than this (m) to a ring segment it is not on (shapely's minimum
+#: clearance): the writer's millimetre rounding moves a vertex by up to 0.9 mm and must not make it invalid.
+MIN_CLEARANCE = 2e-3
+
+
+def _validity(polygons: list[list[np.ndarray]], normal: np.ndarray, point: np.ndarray) -> str:
+    """"valid": every polygon (rings of 3D points) OGC-valid projected onto the plane, no vertex repeated, minimum
+    clearance at least ``MIN_CLEARANCE``; "thin": valid, but a vertex comes closer than that to a segment it is not
+    on (rounding could fold it); "invalid" otherwise."""
     u, v = _plane_axes(normal)
+    state = "valid"
     for rings in polygons:
         flat = [np.column_stack([(r - point) @ u, (r - point) @ v]) for r in rings]
         if any(len(np.unique(np.round(f, 4), axis=0)) != len(f) for f in flat):
-            return False
-        if not shapely.Polygon(flat[0], flat[1:]).is_valid:
-            return False
-    return True
+            return "invalid"
+        polygon = shapely.Polygon(flat[0], flat[1:])
+        if not polygon.is_valid:
+            return "invalid"
+        if shapely.minimum_clearance(polygon) < MIN_CLEARANCE:
+            state = "thin"
+    return state
 
 
 def _earcut(rings: list[np.ndarray], positions: np.ndarray, normal: np.ndarray) -> list[list[np.ndarray]]:
@@ -404,9 +415,9 @@ def _planar_pieces(rings: list[list[list[np.ndarray]]], ring_pairs: np.ndarray, 
 
     A vertex of two faces only lies on the line where their planes meet, between corners of three or more faces:
     both faces drop it alike and their shared edge becomes one straight segment (a ring that would keep fewer than
-    three vertices keeps all, and so do its neighbours). A face left beyond ``tolerance``
-    or invalid in its plane (the move folded a ring) is split into planar triangles: its polygon ear-clipped when
-    that is valid, else its own mesh triangles, whose vertices then stay in the neighbouring faces' rings too (no
+    three vertices keeps all, and so do its neighbours). A face left beyond ``tolerance``, invalid in its plane
+    (the move folded a ring) or thin (a vertex within ``MIN_CLEARANCE`` of another part of its ring) is split into
+    planar triangles: its polygon ear-clipped when that is valid, else its own mesh triangles, whose vertices then stay in the neighbouring faces' rings too (no
     T-junction); repeated until no further face needs splitting.
     """
     keep = np.bincount(ring_pairs[:, 0], minlength=len(positions)) >= 3
@@ -429,13 +440,16 @@ def _planar_pieces(rings: list[list[list[np.ndarray]]], ring_pairs: np.ndarray, 
                 continue
             corners = np.concatenate([positions[r] for poly in pieces for r in poly])
             planar = np.max(np.abs(corners @ plane_n[k] - plane_d[k])) <= tolerance
-            valid = _valid_in_plane(points, plane_n[k], plane_n[k] * plane_d[k])
-            if not valid:
+            state = _validity(points, plane_n[k], plane_n[k] * plane_d[k])
+            if state == "invalid":
                 repaired = _split_where_touching(pieces, positions)
-                valid, pieces = repaired is not None, repaired or pieces
-            if planar and valid:
+                if repaired is not None:
+                    state = _validity([[positions[r] for r in poly] for poly in repaired], plane_n[k],
+                                      plane_n[k] * plane_d[k])
+                    pieces = repaired if state != "invalid" else pieces
+            if planar and state == "valid":
                 out.append(pieces)
-            elif valid:
+            elif state != "invalid":  # non-planar or thin, but valid: ear-clipped into triangles of its corners
                 out.append([t for poly in pieces for t in _earcut(poly, positions, plane_n[k])])
                 clipped[k] = True
             else:
@@ -448,8 +462,8 @@ def _planar_pieces(rings: list[list[list[np.ndarray]]], ring_pairs: np.ndarray, 
             keep[faces[members[k]].ravel()] = True
 
 
-#: Corners closer than this (m) after snapping are one point (the writer's millimetre quantum).
-SAME_POINT = 1e-3
+#: Corners closer than this (m) after snapping are one point (twice the writer's millimetre quantum).
+SAME_POINT = 2e-3
 #: Rounds of snapping at most; each collapses the corner pairs whose edge the previous round turned around.
 COLLAPSE_ROUNDS = 5
 
