@@ -122,3 +122,20 @@ def test_map_update_from_a_crossed_head_ply_without_time_through_the_cli(tmp_pat
         building_map = store.load()
     assert building_map.campaigns[-1].summary["sensors"] == "estimated from the cloud"
     assert sum(1 for b in building_map.buildings.values() if b.facades) == 2
+
+
+def test_a_file_out_of_scan_order_gets_no_pulse_clock(tmp_path) -> None:
+    """Without GPS time the pulse order is the file's: a shuffled file is recognised (few consecutive returns one
+    angular step apart) and falls back to sensors straight across the track, without pulse order."""
+    from lidarmap.map.mls import MIN_ADJACENT, mobile_campaign
+    from lidarmap.sim.plyout import write_points_ply
+
+    pts, _, _ = street_scan((15.0,), length=40.0, rate=25.0)
+    classes = _ground(pts)
+    for name, order in (("ordered", np.arange(len(pts))), ("shuffled", np.random.default_rng(0).permutation(len(pts)))):
+        cols = {"x": pts[order, 0], "y": pts[order, 1], "z": pts[order, 2], "classification": classes[order]}
+        ply = write_points_ply(tmp_path / f"{name}.ply", cols, ["crs EPSG:32632"])
+        campaign = mobile_campaign(ply, None, None, None, 1_000_000)
+        assert campaign.mode == "estimated from the cloud"
+        assert campaign.pulse_times == (name == "ordered"), name
+    assert MIN_ADJACENT == 0.5

@@ -465,6 +465,7 @@ def _by_file_time(s: np.ndarray, c: np.ndarray, slopes: np.ndarray, heads: np.nd
     return np.where(decisive | (heads < 0), nearest, heads)
 
 
+MAX_STEP_DEG = 2.0  # a median angle between consecutive returns above this is no profiler's step
 HEAD_OFFSET = 1e4  # pseudo-seconds between the clocks of two heads (each head's pulses counted on its own)
 
 
@@ -478,7 +479,8 @@ class PulseClock:
     ``round(angle / step)`` pulses apart. Each head counts its own pulses, ``PULSE_SECONDS`` per pulse, from
     ``HEAD_OFFSET`` x its number: the ray evidence orders each head's pulses and counts the missed ones as with GPS
     times. ``step`` is the profiler's angular step, the median angle between consecutive returns of the first
-    chunk (adjacent pulses). Call it on the chunks in file order (``first`` 0 starts over)."""
+    chunk (adjacent pulses); ``adjacent_share`` the share of them 0.5-1.5 steps apart (0 when the step exceeds
+    ``MAX_STEP_DEG``: the file is not in scan order). Call it on the chunks in file order (``first`` 0 starts over)."""
 
     path: SensorLine
     slopes: np.ndarray
@@ -533,6 +535,8 @@ class PulseClock:
         a = a[a > 0]
         self.step = float(np.median(a)) if len(a) else np.radians(0.5)
         self.adjacent_share = float(np.mean((a > 0.5 * self.step) & (a < 1.5 * self.step))) if len(a) else 0.0
+        if self.step > np.radians(MAX_STEP_DEG):  # no profiler steps that far: the file is not in scan order
+            self.adjacent_share = 0.0
 
     def trajectory(self, chunks, source: str | None = None) -> Trajectory:
         """The sensor path over this clock: per head, per 0.01 pseudo-s of its clock (about a profile), the median
