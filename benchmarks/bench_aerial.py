@@ -1,7 +1,8 @@
 """The ablation the LiDAR-DenseSeg paper could not do: what each stage of the aerial pipeline adds.
 
-``python benchmarks/bench_aerial.py [--seed S] [--method pointnet2|baseline] [--model FILE]`` simulates the default
-city (seed 0: 8 buildings, ALS only) and runs ``lidarmap.aerial.pipeline.run_pipeline`` once per variant:
+``python benchmarks/bench_aerial.py [--seed S] [--method pointnet2|baseline] [--model FILE] [--lod22-only]`` simulates
+the default city (seed 0: 8 buildings, ALS only) and runs ``lidarmap.aerial.pipeline.run_pipeline`` once per variant
+(``--lod22-only``: the default variant only, and only the table of its LoD 2.2 faces against the truth):
 
 * naive baseline (MinecraftUBC): 1 m voxels of the points the delivered classification labels building;
 * segmentation only (stages none), + densify, + flatten, densify then flatten, flatten then densify.
@@ -48,10 +49,13 @@ VARIANTS = {
 }
 
 
-def run_variants(city: Path, work: Path, run: RunParams, size: float) -> dict[str, dict]:
+def run_variants(city: Path, work: Path, run: RunParams, size: float, names: list[str] | None = None
+                 ) -> dict[str, dict]:
     fps = read_footprints(city / "footprints.geojson")
     results = {}
     for name, stages in VARIANTS.items():
+        if names is not None and name not in names:
+            continue
         config = PipelineConfig(run=RunParams(**{**run.__dict__, "stages": stages}), voxel=VoxelParams(size=size))
         started = time.perf_counter()
         out = work / f"{size:g}-{'-'.join(stages) or 'none'}"
@@ -77,12 +81,18 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--method", default="pointnet2")
     parser.add_argument("--model", default="")
+    parser.add_argument("--lod22-only", action="store_true",
+                        help="run the default variant at 1 m only and print its LoD 2.2 table (a few minutes)")
     args = parser.parse_args()
     run = RunParams(method=args.method, model=args.model, seed=args.seed)
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         simulate(work / "city", SimParams(seed=args.seed, campaigns=0))
         truth = load_truth(work / "city")
+        if args.lod22_only:
+            default = "densify, flatten (default)"
+            lod22_section(truth, run_variants(truth.root, work, run, 1.0, [default])[default])
+            return
         als = read_las(truth.als)
         fps = read_footprints(truth.root / "footprints.geojson", crs=als.crs)
         by_size = {size: run_variants(truth.root, work, run, size) for size in (1.0, 0.5)}

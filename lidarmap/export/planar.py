@@ -35,7 +35,7 @@ import shapely
 import trimesh
 
 from lidarmap.config import check_params
-from lidarmap.export.geomcheck import plane_basis, valid_polygons
+from lidarmap.export.geomcheck import MIN_AREA, plane_basis, valid_polygons
 from lidarmap.export.snap import snap_to_planes
 
 __all__ = ["ROOF_NZ", "PlanarFace", "PlanarParams", "face_kind", "planar_faces"]
@@ -396,6 +396,46 @@ def _split_where_touching(polygons: list[list[np.ndarray]], positions: np.ndarra
     return out
 
 
+def _unfolded(triangles: np.ndarray) -> np.ndarray:
+    """Mesh triangles after corners were merged: without those that lost a corner, and without pairs on the same
+    three vertices in opposite orientation (a fold that the merge made: they cancel)."""
+    tri = triangles[(triangles[:, 0] != triangles[:, 1]) & (triangles[:, 1] != triangles[:, 2])
+                    & (triangles[:, 0] != triangles[:, 2])]
+    start = np.argmin(tri, axis=1)  # rotate each triangle to start at its smallest index: orientation kept
+    rotated = np.take_along_axis(tri, (start[:, None] + np.arange(3)) % 3, axis=1)
+    unique = np.unique(rotated, axis=0)
+    present = {tuple(t) for t in unique.tolist()}
+    return np.array([t for t in unique.tolist() if (t[0], t[2], t[1]) not in present],
+                    dtype=np.int64).reshape(-1, 3)
+
+
+def _folded(triangles: np.ndarray) -> bool:
+    """Whether some directed edge is used by two of the triangles (they overlap)."""
+    directed = triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    return len(np.unique(directed, axis=0)) < len(directed)
+
+
+def _earcut_all(polygons: list[list[np.ndarray]], positions: np.ndarray, normal: np.ndarray, slivers: bool = False
+                ) -> list[list[np.ndarray]] | None:
+    """Every polygon ear-clipped (:func:`_earcut`), ``None`` unless the triangles cover every edge of its rings once
+    and (unless ``slivers``) no triangle is a sliver under ``MIN_AREA`` (collinear corners; the writer would drop
+    it): ear clipping can leave out parts of a ring that nearly touches itself."""
+    out = []
+    for poly in polygons:
+        triangles = _earcut(poly, positions, normal)
+        edges = {(int(a), int(b)) for r in poly for a, b in zip(r, np.roll(r, -1))}
+        inner = [(int(a), int(b)) for (t,) in triangles for a, b in zip(t, np.roll(t, -1))]
+        covered = {e for e in inner if e in edges}
+        rest = [e for e in inner if e not in edges]
+        corners = np.array([positions[t] for (t,) in triangles]).reshape(-1, 3, 3)
+        area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1) / 2
+        if (covered != edges or len(inner) != len(set(inner)) or any((b, a) not in rest for a, b in rest)
+                or not len(area) or (area.min() < MIN_AREA and not slivers)):
+            return None
+        out.extend(triangles)
+    return out
+
+
 def _keep_short_rings(rings: list[list[list[np.ndarray]]], keep: np.ndarray) -> None:
     """Mark every vertex of a ring that would keep fewer than three vertices as kept (in every face that has it,
     so neighbours share them: no T-junction); repeated until no ring is short."""
@@ -429,9 +469,7 @@ def _planar_pieces(rings: list[list[list[np.ndarray]]], ring_pairs: np.ndarray, 
         out, fresh = [], []
         for k, face_rings in enumerate(rings):
             if split[k]:
-                tri = faces[members[k]]
-                tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])]
-                out.append([[t] for t in tri])
+                out.append([[t] for t in _unfolded(faces[members[k]])])
                 continue
             pieces = [[_corners(r, keep) for r in poly] for poly in face_rings]
             points = [[positions[r] for r in poly] for poly in pieces]
@@ -449,8 +487,12 @@ def _planar_pieces(rings: list[list[list[np.ndarray]]], ring_pairs: np.ndarray, 
                     pieces = repaired if state != "invalid" else pieces
             if planar and state == "valid":
                 out.append(pieces)
-            elif state != "invalid":  # non-planar or thin, but valid: ear-clipped into triangles of its corners
-                out.append([t for poly in pieces for t in _earcut(poly, positions, plane_n[k])])
+            elif state != "invalid" and (clip := _earcut_all(pieces, positions, plane_n[k])) is not None:
+                out.append(clip)  # non-planar or thin, but valid: ear-clipped into triangles of its corners
+                clipped[k] = True
+            elif (state != "invalid" and _folded(_unfolded(faces[members[k]]))
+                  and (clip := _earcut_all(pieces, positions, plane_n[k], slivers=True)) is not None):
+                out.append(clip)  # the mesh triangles would fold: ear-clipped with a sliver (the writer drops it)
                 clipped[k] = True
             else:
                 fresh.append(k)
