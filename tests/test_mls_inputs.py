@@ -24,6 +24,7 @@ from lidarmap.facade.sensors import (
     path_times,
     path_trajectory,
     profile_slopes,
+    with_height,
 )
 from lidarmap.io.ply import iter_ply
 from lidarmap.io.points import read_points
@@ -222,8 +223,9 @@ def test_update_without_trajectory_or_origins_estimates_the_path(scene, tmp_path
     params = SensorParams()
     path_est = estimate_path(cloud.xyz, cloud.attrs["classification"], params)
     across = path_trajectory(path_est).position_at(path_times(path_est, cloud.xyz[:, :2]))
-    clock = PulseClock(path_est, profile_slopes(path_est, ground_points(cloud.xyz, cloud.attrs["classification"],
-                                                                        params.cell), params))
+    ground = ground_points(cloud.xyz, cloud.attrs["classification"], params.cell)
+    slopes = profile_slopes(path_est, ground, params)
+    clock = PulseClock(with_height(path_est, ground, slopes, params), slopes)
     estimate = clock.trajectory([cloud]).position_at(clock(0, cloud))  # what map update does with bare.ply
     assert len(clock.slopes) == 1 and abs(np.degrees(np.arctan(clock.slopes[0]))) < 2.0  # a profiler across
     error = np.linalg.norm(estimate - true.position_at(cloud.attrs["gps_time"]), axis=1)
