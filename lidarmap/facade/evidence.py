@@ -287,7 +287,10 @@ def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: fl
             continue
         leaf = region & ~hole & (ev.offset_n > 0)
         if leaf.sum() < 0.3 * (region & known).sum():
-            continue  # an opening the pulses crossed: not a leaf's to settle
+            # mostly crossed by the pulses: the crossed cells stay opening_cells' (their share of returns types
+            # the opening), but the leaf's cells among them are not wall: without them a flush door a campaign
+            # sees half crossed, half as returns 2-3 cm back, breaks into fragments and votes wall (issue 18)
+            region = leaf
         k = 3
         ring = np.zeros_like(region)
         ring[max(r0 - k, 0):r1 + k, max(c0 - k, 0):c1 + k] = True
