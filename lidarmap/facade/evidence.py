@@ -293,7 +293,10 @@ def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: fl
         leaf = region & ~hole & (ev.offset_n > 0)
         if leaf.sum() < 0.3 * (region & known).sum():
             # mostly crossed by the pulses: its leaf cells are not wall (without them a flush door a campaign sees
-            # half crossed, half as returns 2-3 cm back, breaks into fragments and votes wall: issue 18)
+            # half crossed, half as returns 2-3 cm back, breaks into fragments and votes wall: issue 18); with
+            # no leaf to lift it, a door reaches the ground line (door_bottom_tol): a low-silled window does not
+            if t0 + r0 * cell > float(np.mean(ground_t[c0:c1])) + op.door_bottom_tol:
+                continue
             mark, into = leaf, crossed
         else:
             mark, into = region, out
