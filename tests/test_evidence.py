@@ -339,3 +339,33 @@ def test_door_typing_by_size_ground_line_and_leaf():
     assert kind(2.6, shut) is ElementKind.DOOR and kind(2.6, glazed) is ElementKind.WINDOW
     assert door_or_window((0.0, 0.9, 0.9, 3.0), 0.0, mask, glazed, params) is ElementKind.WINDOW  # a 0.9 m sill
     assert door_or_window((0.0, 0.9, 0.9, 3.0), 0.0, mask, shut, params) is ElementKind.DOOR  # a leaf up the steps
+
+
+def test_leaf_cells_of_a_flush_door_mostly_crossed_by_the_pulses_join_the_opening():
+    """Issue 18 (dev seed 22, building 8): a later campaign saw a flush door (2.5 cm back) with most of its cells
+    crossed by the pulses and a fifth returning from the leaf within pass_depth. Those leaf cells must not stay
+    wall (they broke the door into fragments, voted wall and made the fusion drop the door found before); the
+    crossed cells stay opening_cells'. Returns at the wall's depth instead are wall."""
+    from lidarmap.facade.evidence import CellEvidence, door_leaves
+
+    shape, cell = (40, 40), 0.1
+    door = np.zeros(shape, dtype=bool)
+    door[0:22, 15:26] = True  # 1.1 m x 2.2 m on the ground
+    rr, cc = np.indices(shape)
+    leaf_cells = door & ((rr + 2 * cc) % 5 == 0)  # a fifth of the door, spread over it
+    hole = door & ~leaf_cells
+    zeros = np.zeros(shape)
+    for leaf_depth, expect in ((-0.025, leaf_cells), (0.0, np.zeros(shape, dtype=bool))):
+        offset = np.where(leaf_cells, leaf_depth, 0.0)
+        offset[hole] = np.nan
+        n = np.where(hole, 0, 4)
+        ev = CellEvidence(zeros, zeros, zeros, zeros, zeros, offset=offset, offset_n=n)
+        leaves, crossed = door_leaves(ev, hole, np.zeros(shape[1]), 0.0, cell, FacadeParams())
+        assert np.array_equal(crossed, expect), (leaf_depth, int(crossed.sum()), int(expect.sum()))
+        assert not leaves.any()  # not typed as a leaf: the crossed cells type the opening
+    # the same opening 0.9 m above the ground line (a window with a low sill, glass a few cm back): left alone
+    offset = np.where(leaf_cells, -0.025, 0.0)
+    offset[hole] = np.nan
+    ev = CellEvidence(zeros, zeros, zeros, zeros, zeros, offset=offset, offset_n=np.where(hole, 0, 4))
+    leaves, crossed = door_leaves(ev, hole, np.full(shape[1], -0.9), 0.0, cell, FacadeParams())
+    assert not leaves.any() and not crossed.any()

@@ -256,18 +256,23 @@ def _mean_offset(ev: CellEvidence, cells: np.ndarray) -> float:
 
 
 def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: float, cell: float,
-                params: FacadeParams) -> np.ndarray:
+                params: FacadeParams) -> tuple[np.ndarray, np.ndarray]:
     """Cells of door leaves nearly flush with the wall (a flush door 2-3 cm back returns most of its pulses within
     ``pass_depth`` of the wall: too few cross the plane for :func:`opening_cells`). A door leaf is told from the
     wall by geometry: a rectangle of cells whose mean return depth lies at least ``leaf_offset`` behind the wall
     (joined with the opening cells around it), door-sized (``door_min_height`` tall, ``door_min_width`` ..
     ``door_max_width`` wide), filling ``Ta`` of its bounding box, starting within ``door_leaf_tol`` of the
     ground line and lying ``leaf_offset`` behind the wall beside and above it. Other regions are left alone: a
-    blank wall with range noise never forms such a rectangle, glass and rooms are :func:`opening_cells`'."""
+    blank wall with range noise never forms such a rectangle, glass and rooms are :func:`opening_cells`'.
+
+    Returns (leaves, crossed): ``crossed`` are the cells with returns a little behind the wall inside such a
+    rectangle that the pulses mostly crossed: not wall (a flush door half crossed, issue 18), but no leaf either
+    (glass a few cm back returns like one): the crossed cells type that opening."""
     p, op = params.evidence, params.openings
     out = np.zeros(hole.shape, dtype=bool)
+    crossed = np.zeros(hole.shape, dtype=bool)
     if not p.door_leaf or ev.offset is None:
-        return out
+        return out, crossed
     known = (ev.offset_n >= 2) | hole  # cells whose returns tell wall from leaf
     # a cell's mean is noisy (a few returns): half the offset here, the whole region must lie leaf_offset back
     behind = ((ev.offset_n >= 2) & (ev.offset < -0.5 * p.leaf_offset)) | hole
@@ -287,7 +292,14 @@ def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: fl
             continue
         leaf = region & ~hole & (ev.offset_n > 0)
         if leaf.sum() < 0.3 * (region & known).sum():
-            continue  # an opening the pulses crossed: not a leaf's to settle
+            # mostly crossed by the pulses: its leaf cells are not wall (without them a flush door a campaign sees
+            # half crossed, half as returns 2-3 cm back, breaks into fragments and votes wall: issue 18); with
+            # no leaf to lift it, a door reaches the ground line (door_bottom_tol): a low-silled window does not
+            if t0 + r0 * cell > float(np.mean(ground_t[c0:c1])) + op.door_bottom_tol:
+                continue
+            mark, into = leaf, crossed
+        else:
+            mark, into = region, out
         k = 3
         ring = np.zeros_like(region)
         ring[max(r0 - k, 0):r1 + k, max(c0 - k, 0):c1 + k] = True
@@ -295,8 +307,8 @@ def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: fl
         ring &= ~ndimage.binary_dilation(region) & ~hole
         if not (_mean_offset(ev, leaf) - _mean_offset(ev, ring) <= -p.leaf_offset):
             continue
-        out |= region
-    return out
+        into |= mark
+    return out, crossed
 
 
 def recessed_share(ev: CellEvidence) -> np.ndarray:

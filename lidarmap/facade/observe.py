@@ -452,8 +452,9 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
     raw = surf.observed_raw
     lowest = np.where(raw.any(axis=0), t0 + np.argmax(raw, axis=0) * cell, np.inf)
     ground_t = np.minimum(ground_t, lowest)
-    leaves = door_leaves(ev, passed, ground_t, t0, cell, params) if ray else np.zeros(shape, dtype=bool)
-    passed = passed | leaves
+    no_cells = np.zeros(shape, dtype=bool)
+    leaves, crossed_leaf = door_leaves(ev, passed, ground_t, t0, cell, params) if ray else (no_cells, no_cells)
+    passed = passed | leaves | crossed_leaf
     observed = surf.observed & ~(passed if ray else (through & ~surf.observed_raw))
     if params.openings.occlusion_grow_cells > 0:
         grow = square(params.openings.occlusion_grow_cells)
