@@ -11,7 +11,7 @@ import shapely
 from pyproj import CRS, Transformer
 
 from lidarmap.errors import CRSError, InputError
-from lidarmap.io.crs import horizontal_crs, same_crs
+from lidarmap.io.crs import horizontal_crs, parse_crs, same_crs
 
 #: Standard per-point attributes, by laspy dimension name, with the dtype lidarmap keeps them in.
 STANDARD_ATTRS: dict[str, np.dtype] = {
@@ -48,6 +48,8 @@ class PointCloud:
 
     def __post_init__(self) -> None:
         self.xyz = np.ascontiguousarray(self.xyz, dtype=np.float64).reshape(-1, 3)
+        if self.crs is not None and not isinstance(self.crs, CRS):
+            self.crs = parse_crs(self.crs, self.source)  # "EPSG:28992", a WKT, an EPSG code: what users pass
         n = len(self.xyz)
         for name, values in self.attrs.items():
             if len(values) != n:

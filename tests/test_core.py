@@ -165,3 +165,20 @@ def test_constraints_refuse_non_finite_numbers():
 
     with pytest.raises(ConfigError, match="halo must be a finite number"):
         resolve(DensifyParams, {"densify": {"halo": float("nan")}})
+
+
+def test_point_cloud_takes_a_crs_as_users_write_it_and_refuses_an_unknown_one(tmp_path: Path) -> None:
+    from pyproj import CRS
+
+    from lidarmap.core import PointCloud
+    from lidarmap.errors import CRSError
+    from lidarmap.io.las import read_las, write_las
+
+    xyz = np.array([[85000.0, 446000.0, 1.0], [85001.0, 446001.0, 2.0]])
+    for given in ("EPSG:28992", "28992", 28992, CRS.from_epsg(28992)):
+        cloud = PointCloud(xyz, crs=given)
+        assert isinstance(cloud.crs, CRS) and cloud.crs.to_epsg() == 28992
+    back = read_las(write_las(tmp_path / "a.laz", PointCloud(xyz, crs="EPSG:28992")))  # failed with a string
+    assert back.crs.to_epsg() == 28992
+    with pytest.raises(CRSError, match=r"^cloud.laz: unknown CRS 'EPSG:999999'$"):
+        PointCloud(xyz, crs="EPSG:999999", source="cloud.laz")
