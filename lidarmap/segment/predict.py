@@ -76,9 +76,9 @@ class PredictParams:
     write_vegetation (False): also write class 5 (high vegetation) for the points the model calls not-building that
         the same vegetation test accepts, that stand at least ``vegetation_min_height`` m above the ground, after
         which their pulse went on (not single or last returns), and whose output class would be 0, 1 or 5
-        (:func:`confident_vegetation`); class 6 stays the contract,
-        every other class is kept. Off by default: the test was tuned to remove crowns from building, not to map
-        every tree (docs/segmentation.md gives its measured precision).
+        (:func:`confident_vegetation`); class 6 stays the contract, every other class is kept. Off by default: the
+        test was tuned to remove crowns from building, not to map every tree (it reaches 3-6 % of IGN's high
+        vegetation; docs/segmentation.md).
     vegetation_min_height (2.0): metres above the ground (class 2 when the file has enough, else estimated) a point
         needs to be written class 5 (high vegetation, as in ASPRS/AHN practice).
     """
