@@ -453,11 +453,22 @@ def weighted_window_uncertainty(window_votes: np.ndarray, object_votes: np.ndarr
     return (n_hole - int(w[inside].sum()) + 2 * int(o[inside].sum())) / n_hole
 
 
-def refit_rectangle(window_votes: np.ndarray, object_votes: np.ndarray, col_lines,
-                    row_lines) -> tuple[tuple[int, int, int, int] | None, float]:
+def _float_integral(values: np.ndarray) -> np.ndarray:
+    out = np.zeros((values.shape[0] + 1, values.shape[1] + 1), dtype=np.float64)
+    out[1:, 1:] = np.cumsum(np.cumsum(values, axis=0), axis=1)
+    return out
+
+
+def refit_rectangle(window_votes: np.ndarray, object_votes: np.ndarray, col_lines, row_lines,
+                    prefer: np.ndarray | None = None) -> tuple[tuple[int, int, int, int] | None, float]:
     """The rectangle (r0, r1, c0, c1) over candidate grid lines minimising :func:`weighted_window_uncertainty`,
     and its ε. Every pair of column lines and every pair of row lines is a candidate; all are scored at once with
-    integral images (ties: the first candidate in line order). ``(None, inf)`` without window weight."""
+    integral images. ``(None, inf)`` without window weight.
+
+    Ties -- cells whose window and wall votes cancel weigh nothing either way, so several rectangles can score the
+    same -- go to the candidate holding most of ``prefer`` (a per-cell share in [0, 1] of the matched shapes'
+    evidence claiming the cell: Σ over the rectangle of 2·prefer − 1), i.e. the extent the better-evidenced shapes
+    gave; without ``prefer``, the first candidate in line order."""
     w, o = net_votes(window_votes, object_votes)
     n_hole = int(w.sum())
     if n_hole == 0:
@@ -475,7 +486,14 @@ def refit_rectangle(window_votes: np.ndarray, object_votes: np.ndarray, col_line
     R0, C0 = np.meshgrid(rl[ri], cl[ci], indexing="ij")
     R1, C1 = np.meshgrid(rl[rj], cl[cj], indexing="ij")
     err = n_hole - box_sums(iw, R0, R1, C0, C1) + 2 * box_sums(io, R0, R1, C0, C1)
-    best = np.unravel_index(int(np.argmin(err)), err.shape)
+    if prefer is None:
+        best = np.unravel_index(int(np.argmin(err)), err.shape)
+    else:  # among the tied minima, the candidate closest to the preferred extent, then the smallest
+        share = box_sums(_float_integral(2.0 * np.asarray(prefer, dtype=np.float64) - 1.0), R0, R1, C0, C1)
+        tied = np.flatnonzero(err.ravel() == err.min())
+        area = ((R1 - R0) * (C1 - C0)).ravel()[tied]
+        order = np.lexsort((area, -np.round(share.ravel()[tied], 9)))
+        best = np.unravel_index(int(tied[order[0]]), err.shape)
     rect = (int(R0[best]), int(R1[best]), int(C0[best]), int(C1[best]))
     return rect, float(err[best]) / n_hole
 
@@ -624,13 +642,21 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     if c_hi <= c_lo or r_hi <= r_lo:
         return None
     patch = (slice(r_lo, r_hi), slice(c_lo, c_hi))
+    evidence = _member_weights(members, n_old, votes)
     claimed = np.zeros((r_hi - r_lo, c_hi - c_lo), dtype=bool)
-    for m in members:
-        claimed |= g.raster(m.polygon)[patch]
-    w = _own_votes(votes.window[patch], votes.objects[patch], claimed)
+    share = np.zeros(claimed.shape)  # of the members' evidence claiming each cell ...
+    share_old = np.zeros(claimed.shape)  # ... and of the stored members' alone
+    for k, (m, weight) in enumerate(zip(members, evidence)):
+        cells = g.raster(m.polygon)[patch]
+        claimed |= cells
+        share += weight * cells
+        if k < n_old:
+            share_old += weight * cells
+    total = max(sum(evidence), 1e-12)
+    w = _own_votes(votes.window[patch], votes.objects[patch], claimed, share_old / total > 0.5)
     cols = [g.line(b, 0) - c_lo + k for b in np.r_[lines[:, 0], lines[:, 2]] for k in range(-off, off + 1)]
     rows = [g.line(b, 1) - r_lo + k for b in np.r_[lines[:, 1], lines[:, 3]] for k in range(-off, off + 1)]
-    rect, eps = refit_rectangle(w, votes.objects[patch], cols, rows)
+    rect, eps = refit_rectangle(w, votes.objects[patch], cols, rows, share / total)
     if rect is None or eps > params.max_window_uncertainty:
         return None
     weights = np.array([_weight(m) for m in members], dtype=np.float64)
@@ -654,7 +680,7 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     if outweighed_by_wall(votes.window, votes.objects, g.raster(poly)):
         return None
     keeper = next((m for m in members if m.element_id == keep_id), members[0])
-    kind = weighted_kind([m.kind for m in members], _member_weights(members, n_old, votes), keeper.kind)
+    kind = weighted_kind([m.kind for m in members], evidence, keeper.kind)
     layered = [m for m in members if m.layer_id is not None]
     layer_id = max(layered, key=_weight).layer_id if layered else None
     campaigns = sorted({c for m in members for c in m.campaigns})
@@ -662,12 +688,18 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
                    n_points=int(sum(m.n_points for m in members)), campaigns=campaigns)
 
 
-def _own_votes(w: np.ndarray, o: np.ndarray, claimed: np.ndarray) -> np.ndarray:
+def _own_votes(w: np.ndarray, o: np.ndarray, claimed: np.ndarray, kept_ties: np.ndarray | None = None) -> np.ndarray:
     """Window votes of a patch restricted to the connected parts (of positive net window weight) that touch the
-    ``claimed`` cells: this opening's votes, not a neighbour's."""
+    ``claimed`` cells: this opening's votes, not a neighbour's. Cells whose window votes are cancelled by as much
+    wall weight lose them too -- they count as wall -- except the ``kept_ties``: cells the stored,
+    better-evidenced opening claims, where a tie must not turn into evidence against it (a door leaf one campaign
+    saw open and another as wall, scan line by scan line)."""
     labels, _ = ndimage.label(net_votes(w, o)[0] > 0)
     touching = np.unique(labels[claimed & (labels > 0)])
-    return np.where(np.isin(labels, touching) & (labels > 0), w, 0)
+    own = np.isin(labels, touching) & (labels > 0)
+    if kept_ties is not None:
+        own |= (labels == 0) & kept_ties
+    return np.where(own, w, 0)
 
 
 def opening_uncertainty(polygon, evidence: FacadeEvidence, line_offsets: int = 1) -> float:
@@ -696,18 +728,57 @@ def opening_uncertainty(polygon, evidence: FacadeEvidence, line_offsets: int = 1
     return eps
 
 
-def _rescored_opening(e: Element, votes: _Votes, params: RefineParams) -> Element | None:
-    """A stored window/door the new campaign saw but did not find: ε recomputed on the fused votes for its own
-    rectangle; ``None`` when it exceeds ``max_window_uncertainty`` (now voted down)."""
+def _refit_stored(e: Element, votes: _Votes, params: RefineParams) -> tuple[Polygon, float] | None:
+    """A stored opening's rectangle refitted on the fused votes: each side on the grid lines from
+    ``line_offsets`` cells outside it to anywhere inside (so a wall strip a too-wide rectangle holds is shed, not the
+    opening), ties going to the stored extent; a side left on (± ``line_offsets`` of) its stored line keeps its
+    stored sub-cell position. ``None`` without window weight around it."""
+    g = votes.grid
+    s_lo, t_lo, s_hi, t_hi = e.polygon.bounds
+    off, pad = params.line_offsets, params.line_offsets + 2
+    r_lo, c_lo = max(g.line(t_lo, 1) - pad, 0), max(g.line(s_lo, 0) - pad, 0)
+    r_hi, c_hi = min(g.line(t_hi, 1) + pad, g.shape[0]), min(g.line(s_hi, 0) + pad, g.shape[1])
+    if r_hi <= r_lo or c_hi <= c_lo:
+        return None
+    patch = (slice(r_lo, r_hi), slice(c_lo, c_hi))
+    stored = g.raster(e.polygon)[patch]
+    o = votes.objects[patch]
+    w = _own_votes(votes.window[patch], o, stored, stored)
+    side_lines = [g.line(s_lo, 0) - c_lo, g.line(s_hi, 0) - c_lo, g.line(t_lo, 1) - r_lo, g.line(t_hi, 1) - r_lo]
+    cols = range(side_lines[0] - off, side_lines[1] + off + 1)
+    rows = range(side_lines[2] - off, side_lines[3] + off + 1)
+    rect, eps = refit_rectangle(w, o, cols, rows, stored.astype(np.float64))
+    if rect is None:
+        return None
+    r0, r1, c0, c1 = rect
+    chosen = (c0, c1, r0, r1)
+    sides = [x if abs(chosen[k] - side_lines[k]) <= off else
+             g.coord(chosen[k] + (c_lo if k < 2 else r_lo), 0 if k < 2 else 1)
+             for k, x in enumerate((s_lo, s_hi, t_lo, t_hi))]
+    return box(sides[0], sides[2], sides[1], sides[3]), float(eps)
+
+
+def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size: float = 0.0) -> Element | None:
+    """A stored window/door the new campaign saw but did not find: ``None`` when the wall evidence over it (all
+    campaigns so far) outweighs its opening evidence (:func:`outweighed_by_wall`); otherwise kept, its sides
+    refitted on the fused votes (:func:`_refit_stored`) and its ε recomputed there. A large ε alone does not drop
+    it: a door leaf one campaign reads as wall scan line by scan line leaves a striped vote map whose ε is high
+    while the opening evidence still outweighs the wall's. ``None`` too when the refit leaves a side shorter than
+    ``min_size`` (a sliver is no opening)."""
     g = votes.grid
     cells = g.raster(e.polygon)
     if not cells.any() or votes.seen_new[cells].astype(bool).mean() < params.seen_fraction:
         return e
-    evidence = FacadeEvidence(g.cell, g.s0, g.t0, votes.window, votes.objects, votes.seen)
-    eps = opening_uncertainty(e.polygon, evidence, params.line_offsets)
-    if eps > params.max_window_uncertainty or outweighed_by_wall(votes.window, votes.objects, cells):
+    if outweighed_by_wall(votes.window, votes.objects, cells):
         return None
-    return dataclasses.replace(e, uncertainty=float(eps))
+    refit = _refit_stored(e, votes, params)
+    if refit is None:
+        return e
+    poly, eps = refit
+    b = poly.bounds
+    if min(b[2] - b[0], b[3] - b[1]) < min_size:
+        return None
+    return dataclasses.replace(e, polygon=poly, uncertainty=eps)
 
 
 def _unknown_bounds(shapes: list[Element], unknown: list[Element]) -> np.ndarray:
@@ -731,7 +802,7 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
         olds, news = [old[i] for i in oi], [new[j] for j in ni]
         if not news:
             for e in olds:
-                rescored = _rescored_opening(e, votes, params)
+                rescored = _rescored_opening(e, votes, params, min_size)
                 if rescored is not None:
                     out.append(rescored)
                     if rescored is not e:
@@ -746,7 +817,7 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
             changed.add(keep_id)
             continue
         for e in olds:  # the new shape is voted down: the stored ones stay unless the fused votes now drop them
-            rescored = _rescored_opening(e, votes, params)
+            rescored = _rescored_opening(e, votes, params, min_size)
             if rescored is not None:
                 out.append(rescored)
                 if rescored is not e:
