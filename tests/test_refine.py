@@ -473,3 +473,66 @@ def test_a_sliver_cut_by_the_facade_extent_is_not_an_opening():
         assert len(fused) == (1 if kept else 0), [e.polygon.bounds for e in fused]
         unchecked, _ = _fuse_openings([], new, votes, _Ids([]), RefineParams(), (0.0, 4.0, 0.0, 2.7), [], 0.0)
         assert len(unchecked) == 1  # without the size check the sliver was stored (the last round's behaviour)
+
+
+def test_a_door_leaf_read_as_wall_line_by_line_does_not_erase_a_well_observed_door():
+    """Two campaigns found a garage door (weight 2 per cell in all); a third, seeing its leaf as wall on every other
+    scan line (weight 2), found nothing. Opening evidence (2 per cell) outweighs wall (1 per cell on average): the
+    door stays, whole. The tied lines used to count as wall (ε ~ 1.5 > 0.5: dropped). Wall weight 3 on every
+    line outweighs it: dropped."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 60))
+    door = box(1.0, 0.2, 3.8, 2.4)
+    cells = grid.raster(door)
+    w_old = 2 * cells.astype(int)
+    striped = cells & (np.arange(grid.shape[0]) % 2 == 0)[:, None]
+    stored = [Element(3, ElementKind.DOOR, door, None, 0.05, campaigns=[1, 2])]
+    extent = (0.0, 6.0, 0.0, 4.0)
+    for wall, kept in ((2 * striped.astype(int), True), (3 * cells.astype(int), False)):
+        votes = _Votes(grid, w_old, 3 * (~cells).astype(int) + wall, np.full(grid.shape, 3),
+                       np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=np.zeros(grid.shape, int))
+        fused, _ = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), extent, [], 0.45)
+        assert [(e.element_id, e.kind) for e in fused] == ([(3, ElementKind.DOOR)] if kept else [])
+        if kept:
+            assert fused[0].polygon.equals_exact(door, 1e-9), fused[0].polygon.bounds
+
+
+def test_a_stored_window_too_wide_sheds_its_wall_strip_instead_of_being_dropped():
+    """Campaign 1 stored a window 0.45 m too wide (its votes: window on the true opening, wall on the strip); a
+    later campaign found nothing and saw wall on the strip again. The refit used to search ±1 cell around the
+    stored sides (ε on the fused votes > 0.5: dropped); it now sheds the strip and keeps the window."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    window, stored_box = box(1.0, 1.0, 2.0, 2.5), box(1.0, 1.0, 2.45, 2.5)
+    cells, strip = grid.raster(window), grid.raster(stored_box) & ~grid.raster(window)
+    votes = _Votes(grid, cells.astype(int), (~cells).astype(int) + strip, np.full(grid.shape, 2),
+                   np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=np.zeros(grid.shape, int))
+    stored = [Element(3, ElementKind.WINDOW, stored_box, None, 0.2, campaigns=[1])]
+    fused, changed = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), (0.0, 4.0, 0.0, 4.0))
+    assert [e.element_id for e in fused] == [3] and changed == {3}
+    assert polygon_iou(fused[0].polygon, window) >= 0.95 and fused[0].uncertainty == 0.0, fused[0].polygon.bounds
+
+
+def test_cells_where_window_and_wall_votes_tie_keep_the_stored_extent():
+    """Campaign 1 saw a window whole; campaign 2 found its left half and saw the right half as wall, with the same
+    weight per cell: the votes on the right half cancel. The stored shape carries more opening evidence than the
+    half, so the fused window keeps the whole extent (it used to shrink to the half: the tie counted as wall).
+    With campaign 2's wall weighing more than campaign 1's window there, the half wins."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    whole, left = box(1.0, 1.0, 2.2, 2.6), box(1.0, 1.0, 1.6, 2.6)
+    cells, left_cells = grid.raster(whole), grid.raster(left)
+    right_cells = cells & ~left_cells
+    stored = [Element(3, ElementKind.WINDOW, whole, None, 0.0, campaigns=[1])]
+    new = [Element(0, ElementKind.WINDOW, left, None, 0.0, campaigns=[2])]
+    extent = (0.0, 4.0, 0.0, 4.0)
+    for wall_weight, expected in ((1, whole), (2, left)):
+        w_new = left_cells.astype(int)
+        votes = _Votes(grid, cells.astype(int) + w_new, 2 * (~cells).astype(int) + wall_weight * right_cells,
+                       np.full(grid.shape, 2), np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=w_new)
+        fused, _ = _fuse_openings(stored, new, votes, _Ids(stored), RefineParams(), extent)
+        assert len(fused) == 1 and fused[0].element_id == 3
+        assert polygon_iou(fused[0].polygon, expected) >= 0.95, (wall_weight, fused[0].polygon.bounds)
