@@ -28,8 +28,12 @@ Refinement of one stored façade by one campaign (:func:`refine_facade`), in the
    old occlusion split merge). Windows/doors: the best rectangle over candidate lines from the edges of all matched
    shapes minimises the weighted eq. (3) on the vote map (:func:`refit_rectangle`, :func:`weighted_window_uncertainty`:
    window votes weigh for, object votes against, occluded pixels nothing); ε is that weighted ratio; sides below the
-   cell size are the campaign-weighted mean of the matched shapes' sides on the chosen lines. A window whose ε
-   exceeds ``max_window_uncertainty`` on the fused votes (campaigns saw wall across it) is dropped. Structures: the
+   cell size are the campaign-weighted mean of the matched shapes' sides on the chosen lines. Cells whose window
+   and wall votes tie weigh nothing where the stored shapes hold most of the matched evidence (elsewhere they count
+   as wall), and ties between rectangles go to the extent the better-evidenced shapes claim. A merged window whose
+   ε exceeds ``max_window_uncertainty`` on the fused votes is dropped; a stored one the campaign saw but did not
+   find is dropped only when the wall evidence over it outweighs its opening evidence, else its sides are refitted
+   (inwards over the whole rectangle, so a too-wide one sheds its wall strip). Structures: the
    pixels most campaigns that saw them saw as the object; ε the point-weighted mean. The same vote judges a stored
    structure the new campaign saw but did not find (dropped when outvoted) and a new one earlier campaigns saw no
    sign of, so clutter seen once (reveals, interiors behind glass) does not pile up campaign after campaign. Pixels claimed by objects on
@@ -127,8 +131,10 @@ class RefineParams:
             is a piece of it (a window split by an old occlusion) and merges into it.
         line_offsets (1): each shape's edges give candidate lines at this many cells either side for the
             vote-map rectangle refit.
-        max_window_uncertainty (0.5): a window/door whose weighted eq. (3) ε exceeds this after fusion (other
-            campaigns saw wall across it) is dropped.
+        max_window_uncertainty (0.5): a window/door merged from matched shapes whose weighted eq. (3) ε exceeds
+            this after fusion (campaigns saw wall across it) is dropped. A stored one the new campaign saw without
+            finding it is judged by evidence weight instead (``outweighed_by_wall``): a striped vote map (a door
+            leaf read as wall on every other scan line) has a high ε although its opening evidence dominates.
         seen_fraction (0.5): a stored window is re-scored only when the new campaign saw at least this share of its
             cells; otherwise it is left exactly as stored.
         structure_vote (0.5): a structure keeps the pixels that at least this share of the campaigns that saw them
