@@ -662,7 +662,8 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     w = _own_votes(votes.window[patch], votes.objects[patch], claimed, share_old / total > 0.5)
     cols = [g.line(b, 0) - c_lo + k for b in np.r_[lines[:, 0], lines[:, 2]] for k in range(-off, off + 1)]
     rows = [g.line(b, 1) - r_lo + k for b in np.r_[lines[:, 1], lines[:, 3]] for k in range(-off, off + 1)]
-    rect, eps = refit_rectangle(w, votes.objects[patch], cols, rows, share / total)
+    # ties go to the extent the stored shapes' evidence claims; a new shape alone keeps the plain line order
+    rect, eps = refit_rectangle(w, votes.objects[patch], cols, rows, share / total if n_old else None)
     if rect is None or eps > params.max_window_uncertainty:
         return None
     weights = np.array([_weight(m) for m in members], dtype=np.float64)
