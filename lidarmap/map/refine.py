@@ -30,7 +30,8 @@ Refinement of one stored façade by one campaign (:func:`refine_facade`), in the
    window votes weigh for, object votes against, occluded pixels nothing); ε is that weighted ratio; sides below the
    cell size are the campaign-weighted mean of the matched shapes' sides on the chosen lines. Cells whose window
    and wall votes tie weigh nothing where the stored shapes hold most of the matched evidence (elsewhere they count
-   as wall), and ties between rectangles go to the extent the better-evidenced shapes claim. A merged window whose
+   as wall), and where stored shapes take part ties between rectangles go to the extent the better-evidenced
+   shapes claim. A merged window whose
    ε exceeds ``max_window_uncertainty`` on the fused votes is dropped; a stored one the campaign saw but did not
    find is dropped only when the wall evidence over it outweighs its opening evidence, else its sides are refitted
    (inwards over the whole rectangle, so a too-wide one sheds its wall strip). Structures: the
