@@ -536,3 +536,50 @@ def test_cells_where_window_and_wall_votes_tie_keep_the_stored_extent():
         fused, _ = _fuse_openings(stored, new, votes, _Ids(stored), RefineParams(), extent)
         assert len(fused) == 1 and fused[0].element_id == 3
         assert polygon_iou(fused[0].polygon, expected) >= 0.95, (wall_weight, fused[0].polygon.bounds)
+
+
+def test_an_unknown_region_the_campaigns_together_see_enclosed_by_wall_becomes_a_window():
+    """A window on a side wall: each campaign saw its hole but part of its border unobserved (a reveal's shadow
+    fringe, 2 cells, left without votes), so each stored an unknown region. On the fused votes it is a hole with
+    wall on all four sides (across the fringe): a window. A hole reaching the façade's bottom (a door: no wall
+    below), or a region without window votes (sampling gaps on a blank wall), stays unknown; so does a window one
+    of whose sides has wall in fewer than ``enclosed_wall_share`` of its rows."""
+    from lidarmap.facade.params import FacadeParams
+    from lidarmap.map.refine import _Grid, _Ids, _promote_enclosed, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    window = box(1.0, 1.2, 2.2, 2.8)
+    cells = grid.raster(window)
+    fringe = grid.raster(box(2.2, 1.2, 2.4, 2.8))
+    region = box(0.9, 1.1, 2.5, 2.9)
+
+    def votes_for(hole, gap, wall_holes=None):
+        wall = ~hole & ~gap
+        if wall_holes is not None:
+            wall &= ~wall_holes
+        return _Votes(grid, 2 * hole.astype(int), 2 * wall.astype(int), np.full(grid.shape, 2),
+                      np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=hole.astype(int))
+
+    u = Element(7, ElementKind.UNKNOWN, region, None, math.inf, campaigns=[1])
+    objects, unknown = _promote_enclosed([], [u], votes_for(cells, fringe), _Ids([u]), FacadeParams(),
+                                         RefineParams(), campaign_id=2)
+    assert unknown == [] and [(e.kind, e.element_id, e.campaigns) for e in objects] == [(ElementKind.WINDOW, 8, [1, 2])]
+    assert polygon_iou(objects[0].polygon, window) >= 0.95, objects[0].polygon.bounds
+    # a door: the hole reaches the bottom of the grid (nothing below it)
+    door = box(1.0, 0.0, 2.2, 2.0)
+    d_cells = grid.raster(door)
+    ud = Element(7, ElementKind.UNKNOWN, box(0.9, 0.0, 2.5, 2.1), None, math.inf, campaigns=[1])
+    objects, unknown = _promote_enclosed([], [ud], votes_for(d_cells, grid.raster(box(2.2, 0.0, 2.4, 2.0))),
+                                         _Ids([ud]), FacadeParams(), RefineParams(), campaign_id=2)
+    assert objects == [] and unknown == [ud]
+    # no window votes at all (a blank wall's unobserved stripes)
+    none = np.zeros(grid.shape, bool)
+    objects, unknown = _promote_enclosed([], [u], votes_for(none, cells | fringe), _Ids([u]), FacadeParams(),
+                                         RefineParams(), campaign_id=2)
+    assert objects == [] and unknown == [u]
+    # wall on the right side in every other row only: enclosed at share 0.5, not at 0.75
+    patchy = grid.raster(box(2.4, 1.2, 2.7, 2.8)) & (np.arange(grid.shape[0]) % 2 == 0)[:, None]
+    for share, promoted in ((0.5, True), (0.75, False)):
+        objects, _ = _promote_enclosed([], [u], votes_for(cells, fringe, patchy), _Ids([u]), FacadeParams(),
+                                       RefineParams(enclosed_wall_share=share), campaign_id=2)
+        assert len(objects) == (1 if promoted else 0)

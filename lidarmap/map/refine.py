@@ -136,6 +136,9 @@ class RefineParams:
             this after fusion (campaigns saw wall across it) is dropped. A stored one the new campaign saw without
             finding it is judged by evidence weight instead (``outweighed_by_wall``): a striped vote map (a door
             leaf read as wall on every other scan line) has a high ε although its opening evidence dominates.
+        enclosed_wall_share (0.5): an unknown region the new campaign saw becomes a window when the fused votes
+            hold a rectangle in it with ε <= ``max_window_uncertainty`` and at least this share of the cells just
+            outside each of its four sides carries net wall weight (enclosed by wall); 1.0 switches it off.
         seen_fraction (0.5): a stored window is re-scored only when the new campaign saw at least this share of its
             cells; otherwise it is left exactly as stored.
         structure_vote (0.5): a structure keeps the pixels that at least this share of the campaigns that saw them
@@ -175,6 +178,7 @@ class RefineParams:
         "contain_fraction": ">= 0",
         "line_offsets": ">= 0",
         "max_window_uncertainty": ">= 0",
+        "enclosed_wall_share": ">= 0",
         "seen_fraction": ">= 0",
         "structure_vote": ">= 0",
         "min_conflict_area": ">= 0",
@@ -203,6 +207,7 @@ class RefineParams:
     contain_fraction: float = 0.6
     line_offsets: int = 1
     max_window_uncertainty: float = 0.5
+    enclosed_wall_share: float = 0.5
     seen_fraction: float = 0.5
     structure_vote: float = 0.5
     min_conflict_area: float = 0.02
@@ -222,7 +227,7 @@ class RefineParams:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0")
-        for name in ("iou_threshold", "contain_fraction", "seen_fraction", "structure_vote"):
+        for name in ("iou_threshold", "contain_fraction", "seen_fraction", "structure_vote", "enclosed_wall_share"):
             if not 0.0 < getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in (0, 1]")
         if self.wall_retry_inits < 1:
@@ -980,7 +985,76 @@ def _fuse_elements(stored: Facade, obs: Facade, layer_map: dict[int, int], votes
     min_cells = max(1, int(math.ceil(fparams.openings.min_unknown_area / (fparams.layers.cell ** 2) - 1e-9)))
     unknown = _fuse_unknown([e for e in stored.elements if e.is_unknown], [e for e in new if e.is_unknown],
                             [e for e in objects if e.kind in OPENINGS], changed, votes, ids, campaign_id, min_cells)
+    if params.enclosed_wall_share < 1.0:
+        objects, unknown = _promote_enclosed(objects, unknown, votes, ids, fparams, params, campaign_id)
     return sorted(objects + unknown, key=lambda e: e.element_id)
+
+
+_FRINGE_CELLS = 3  # wall within this many cells outside a side encloses it (a reveal's shadow fringe between)
+
+
+def _enclosed_window(u: Element, votes: _Votes, fparams: FacadeParams,
+                     params: RefineParams) -> tuple[Polygon, float] | None:
+    """The window an unknown region holds on the fused votes, or ``None``: the rectangle over every grid line
+    within its bounds (± ``line_offsets``) minimising the weighted eq. (3), kept when ε <= ``max_window_uncertainty``,
+    its sides >= ``min_opening_size``, its area <= ``max_opening_area``, and when on each of its four sides at
+    least ``enclosed_wall_share`` of the cells just outside carry net wall weight (a window enclosed by wall; a
+    door reaching the ground or a hole running off the façade is not)."""
+    g = votes.grid
+    off = params.line_offsets
+    s_lo, t_lo, s_hi, t_hi = u.polygon.bounds
+    c_lo, c_hi = max(g.line(s_lo, 0) - off - 1, 0), min(g.line(s_hi, 0) + off + 1, g.shape[1])
+    r_lo, r_hi = max(g.line(t_lo, 1) - off - 1, 0), min(g.line(t_hi, 1) + off + 1, g.shape[0])
+    patch = (slice(r_lo, r_hi), slice(c_lo, c_hi))
+    o = votes.objects[patch]
+    w = _own_votes(votes.window[patch], o, g.raster(u.polygon)[patch])
+    rect, eps = refit_rectangle(w, o, range(1, c_hi - c_lo), range(1, r_hi - r_lo))
+    if rect is None or eps > params.max_window_uncertainty:
+        return None
+    r0, r1, c0, c1 = rect
+    size = (c1 - c0) * g.cell, (r1 - r0) * g.cell
+    if min(size) < fparams.openings.min_opening_size or size[0] * size[1] > fparams.openings.max_opening_area:
+        return None
+    wall = net_votes(votes.window, votes.objects)[1] > 0
+    R0, R1, C0, C1 = r0 + r_lo, r1 + r_lo, c0 + c_lo, c1 + c_lo  # on the façade's grid
+    reach = _FRINGE_CELLS
+    rows, cols = wall.shape
+    rings = [wall[R0:R1, max(C0 - reach, 0):C0].any(axis=1) if C0 > 0 else None,
+             wall[R0:R1, C1:C1 + reach].any(axis=1) if C1 < cols else None,
+             wall[max(R0 - reach, 0):R0, C0:C1].any(axis=0) if R0 > 0 else None,
+             wall[R1:R1 + reach, C0:C1].any(axis=0) if R1 < rows else None]
+    if any(ring is None or ring.mean() < params.enclosed_wall_share for ring in rings):
+        return None
+    poly = box(g.coord(c0 + c_lo, 0), g.coord(r0 + r_lo, 1), g.coord(c1 + c_lo, 0), g.coord(r1 + r_lo, 1))
+    return poly, float(eps)
+
+
+def _promote_enclosed(objects: list[Element], unknown: list[Element], votes: _Votes, ids: _Ids,
+                      fparams: FacadeParams, params: RefineParams,
+                      campaign_id: int) -> tuple[list[Element], list[Element]]:
+    """Unknown regions the new campaign saw (>= ``seen_fraction`` of their cells) that the fused votes show as a
+    window enclosed by wall (:func:`_enclosed_window`) become windows: each campaign alone saw part of the border
+    hidden or unobserved (a side wall at a slant), together they saw it whole. Not where the window would overlap
+    an opening, or hold less than half of the region."""
+    g = votes.grid
+    openings = [e.polygon for e in objects if e.kind in OPENINGS]
+    kept: list[Element] = []
+    for u in unknown:
+        cells = g.raster(u.polygon)
+        found = None
+        if cells.any() and votes.seen_new[cells].astype(bool).mean() >= params.seen_fraction:
+            found = _enclosed_window(u, votes, fparams, params)
+        if found is not None and (any(found[0].intersects(p) and found[0].intersection(p).area > 0 for p in openings)
+                                  or found[0].intersection(u.polygon).area < 0.5 * u.polygon.area
+                                  or outweighed_by_wall(votes.window, votes.objects, g.raster(found[0]))):
+            found = None
+        if found is None:
+            kept.append(u)
+            continue
+        objects.append(Element(element_id=ids(), kind=ElementKind.WINDOW, polygon=found[0], layer_id=None,
+                               uncertainty=found[1], n_points=0, campaigns=sorted(set(u.campaigns) | {campaign_id})))
+        openings.append(found[0])
+    return objects, kept
 
 
 # ----------------------------------------------------------------------------------------------------------------------
