@@ -40,7 +40,8 @@ Refinement of one stored façade by one campaign (:func:`refine_facade`), in the
    sign of, so clutter seen once (reveals, interiors behind glass) does not pile up campaign after campaign. Pixels claimed by objects on
    two layers go to the one with the lower ε.
 6. **Unknown regions** lose the pixels any campaign saw as wall (``object_votes`` > 0) or a changed opening covers;
-   new ones are added only where the grid grew, so a façade's unknown area never grows.
+   new ones are added only where the grid grew, so a façade's unknown area never grows. One the campaign saw that
+   the fused votes show as a hole enclosed by wall on all four sides becomes a window (``enclosed_wall_share``).
 
 Element and façade ids stay stable: a merged object keeps the id of its oldest stored member; new objects get fresh
 ids. A campaign id already listed in a façade's ``campaigns`` is never fused again into it (re-applying is a no-op).
