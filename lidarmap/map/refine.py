@@ -1004,6 +1004,8 @@ def _enclosed_window(u: Element, votes: _Votes, fparams: FacadeParams,
     g = votes.grid
     off = params.line_offsets
     s_lo, t_lo, s_hi, t_hi = u.polygon.bounds
+    if (s_hi - s_lo) * (t_hi - t_lo) > 2 * fparams.openings.max_opening_area:
+        return None  # too wide to be mostly one window; and every line pair there would be costly
     c_lo, c_hi = max(g.line(s_lo, 0) - off - 1, 0), min(g.line(s_hi, 0) + off + 1, g.shape[1])
     r_lo, r_hi = max(g.line(t_lo, 1) - off - 1, 0), min(g.line(t_hi, 1) + off + 1, g.shape[0])
     patch = (slice(r_lo, r_hi), slice(c_lo, c_hi))
