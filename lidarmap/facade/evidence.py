@@ -293,19 +293,20 @@ def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: fl
         leaf = region & ~hole & (ev.offset_n > 0)
         if leaf.sum() < 0.3 * (region & known).sum():
             # mostly crossed by the pulses: its leaf cells are not wall (without them a flush door a campaign sees
-            # half crossed, half as returns 2-3 cm back, breaks into fragments and votes wall: issue 18); with
-            # no leaf to lift it, a door reaches the ground line (door_bottom_tol): a low-silled window does not
-            if t0 + r0 * cell > float(np.mean(ground_t[c0:c1])) + op.door_bottom_tol:
-                continue
-            mark, into = leaf, crossed
+            # half crossed, half as returns 2-3 cm back, breaks into fragments and votes wall: issue 18). They only
+            # complete the opening (a door up some steps as much as one on the street); its type is the typing's
+            # (door_or_window: the crossed cells' passing pulses, the floor level of the façade)
+            # the leaf's depth: its returns are split at pass_depth between the crossed cells and the leaf cells
+            # (a mean over the leaf cells alone is biased towards the wall: seed 23 b6, -9 mm for a leaf 23 mm back)
+            mark, into, depth_cells = leaf, crossed, region
         else:
-            mark, into = region, out
+            mark, into, depth_cells = region, out, leaf
         k = 3
         ring = np.zeros_like(region)
         ring[max(r0 - k, 0):r1 + k, max(c0 - k, 0):c1 + k] = True
         ring[:r0] = False  # not below the door: the ground, a step
         ring &= ~ndimage.binary_dilation(region) & ~hole
-        if not (_mean_offset(ev, leaf) - _mean_offset(ev, ring) <= -p.leaf_offset):
+        if not (_mean_offset(ev, depth_cells) - _mean_offset(ev, ring) <= -p.leaf_offset):
             continue
         into |= mark
     return out, crossed

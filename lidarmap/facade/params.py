@@ -292,6 +292,9 @@ class OpeningParams:
         ground profile) may be doors (a step or threshold); windows with sills of 0.5-1.2 m stay windows ...
     door_leaf_tol (1.1): ... and openings closed by an opaque leaf (evidence.opaque_share) within this of it:
         a door at the top of a few steps, the ground floor raised above a sloping street ...
+    door_floor_tol (0.25): ... such a lifted leaf is a door only at the floor level of its façade: no other
+        door-tall opening of the same observation starts more than this below it (a window with curtains on a
+        0.8 m sill beside a door on the same raised floor is a window) ...
     door_min_height (1.9): ... and doors are at least this tall (windows, even on the ground floor, are
         shorter; their sills are ~1 m above the floor) ...
     ground_band (4.0): ground points up to this far in front of the wall give the ground line ...
@@ -337,6 +340,7 @@ class OpeningParams:
         "refine_min_points": ">= 0",
         "door_bottom_tol": ">= 0",
         "door_leaf_tol": ">= 0",
+        "door_floor_tol": ">= 0",
         "ground_band": ">= 0",
         "ground_bin": ">= 0",
         "door_min_height": ">= 0",
@@ -367,6 +371,7 @@ class OpeningParams:
     refine_min_points: int = 8
     door_bottom_tol: float = 0.35
     door_leaf_tol: float = 1.1
+    door_floor_tol: float = 0.25
     ground_band: float = 4.0
     ground_bin: float = 1.0
     door_min_height: float = 1.9
