@@ -476,7 +476,7 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
         opaque = recessed_share(ev)
         opaque[leaves] = 1.0  # a leaf returns every pulse, a few on the wall's side of pass_depth
     return _Visibility(values=values, ground_t=ground_t, below=below, unsampled=unsampled, weights=weights,
-                       opaque=opaque, leaves=leaves | crossed_leaf, behind=behind_pts if ray else None)
+                       opaque=opaque, leaves=leaves, behind=behind_pts if ray else None)
 
 
 class _Elements:
