@@ -190,7 +190,7 @@ def refine_bounds(rect: tuple[int, int, int, int], wall_st: np.ndarray | None, s
     sample nearest the opening, and "spacing" the median gap between consecutive samples across the side. Without
     enough points (``refine_min_points``) a side is its cell edge moved out by ``edge_bias_cells`` (a cell
     straddling the edge holds wall samples, so the hole is on average half a cell short). A side moves at most
-    ``refine_max_cells`` from its cell edge.
+    ``refine_max_cells`` from its cell edge outwards and ``refine_inward_cells`` into the opening.
     """
     r0, r1, c0, c1 = rect
     b = params.openings.edge_bias_cells * cell
@@ -200,6 +200,7 @@ def refine_bounds(rect: tuple[int, int, int, int], wall_st: np.ndarray | None, s
         return tuple(out)  # type: ignore[return-value]
     st = np.asarray(wall_st, dtype=np.float64)
     lim = params.openings.refine_max_cells * cell
+    inward = min(params.openings.refine_inward_cells * cell, lim)
     reach = lim + 2 * cell
     for k in range(4):
         axis = 0 if k < 2 else 1  # the coordinate across this side
@@ -224,7 +225,7 @@ def refine_bounds(rect: tuple[int, int, int, int], wall_st: np.ndarray | None, s
         if len(nearest) < 3:
             continue
         spacing = min(float(np.median(gaps)), 3 * cell) if len(gaps) else 0.0
-        pos = float(np.clip(np.median(nearest) - spacing / 2, -lim, lim))
+        pos = float(np.clip(np.median(nearest) - spacing / 2, -inward, lim))
         out[k] = edge + sign * pos
     return tuple(out)  # type: ignore[return-value]
 

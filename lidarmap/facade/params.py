@@ -288,6 +288,10 @@ class OpeningParams:
         sample (sub-cell, and right for sparse far façades whose scan lines are further apart than a cell);
         it moves at most this many cells from its cell edge ...
     refine_min_points (8): ... and needs this many wall points along it.
+    refine_inward_cells (1.0): ... and moves at most this many cells into the opening: the opening's cells hold
+        mostly pulses that crossed the plane, so main-layer returns deeper inside are not the wall's edge (a flush
+        door leaf 2-3 cm back returns a third of its pulses within pass_depth; taken as wall they cut 0.1-0.25 m
+        off its sides and bottom and made it a window).
     door_bottom_tol (0.35): openings starting within this of the ground line in front of them (the façade's
         ground profile) may be doors (a step or threshold); windows with sills of 0.5-1.2 m stay windows ...
     door_leaf_tol (1.1): ... and openings closed by an opaque leaf (evidence.opaque_share) within this of it:
@@ -338,6 +342,7 @@ class OpeningParams:
         "edge_bias_cells": ">= 0",
         "refine_max_cells": ">= 0",
         "refine_min_points": ">= 0",
+        "refine_inward_cells": ">= 0",
         "door_bottom_tol": ">= 0",
         "door_leaf_tol": ">= 0",
         "door_floor_tol": ">= 0",
@@ -369,6 +374,7 @@ class OpeningParams:
     edge_bias_cells: float = 0.5
     refine_max_cells: float = 2.5
     refine_min_points: int = 8
+    refine_inward_cells: float = 1.0
     door_bottom_tol: float = 0.35
     door_leaf_tol: float = 1.1
     door_floor_tol: float = 0.25
