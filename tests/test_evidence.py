@@ -442,3 +442,30 @@ def test_flush_door_with_noisy_leaf_returns_keeps_its_sides():
     openings = _openings(extract_buildings(cloud, traj, fps, FacadeParams(), campaign_id=1, seed=0))
     iou, kind = _best(openings, lambda fr: _truth_rect(fr, *FLUSH_DOOR, y=WALL_Y))
     assert iou >= 0.75 and kind is ElementKind.DOOR, (iou, kind)
+
+
+def test_door_leaf_region_does_not_bleed_over_a_sparsely_sampled_wall():
+    """Dev seed 25 building 2 (issue 18): a sparse campaign samples the wall in alternate rows, two returns per
+    cell in one (a fifth of the cells' means lie 6 mm back by range noise), one in the next. Bridging every
+    single-return cell joined the door with the window above and the whole wall: no door-sized region, the door's
+    leaf cells stayed wall. A single return bridges only when it lies back too."""
+    from lidarmap.facade.evidence import CellEvidence, door_leaves
+
+    rng = np.random.default_rng(1)
+    shape, cell = (60, 40), 0.1
+    rr, cc = np.indices(shape)
+    door = (rr < 22) & (cc >= 15) & (cc < 26)
+    window = (rr >= 35) & (rr < 50) & (cc >= 10) & (cc < 30)
+    leaf_cells = door & ((rr + 2 * cc) % 5 == 0)
+    hole = (door & ~leaf_cells) | window
+    n = np.where(rr % 2 == 0, 2, 1)
+    offset = rng.normal(0.0, 0.01 / np.sqrt(n))
+    offset[leaf_cells] = -0.025
+    offset[hole] = np.nan
+    n = np.where(hole, 0, n)
+    zeros = np.zeros(shape)
+    ev = CellEvidence(zeros, zeros, zeros, zeros, zeros, offset=offset, offset_n=n)
+    leaves, crossed = door_leaves(ev, hole, np.zeros(shape[1]), 0.0, cell, FacadeParams())
+    assert np.array_equal(crossed & door, leaf_cells) and not leaves.any()
+    near_door = (rr < 24) & (cc >= 13) & (cc < 28)  # noisy wall cells along its sides may join: 2 cells at most
+    assert not (crossed & ~near_door).any()

@@ -278,7 +278,11 @@ def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: fl
     behind = ((ev.offset_n >= 2) & (ev.offset < -0.5 * p.leaf_offset)) | hole
     # the scan lines of a far wall leave rows without returns: bridge them, never across measured wall
     closed = ndimage.binary_closing(np.pad(behind, 2), structure=square(2))[2:-2, 2:-2]
-    behind = ndimage.binary_opening(behind | (closed & ~known), structure=square(1)) | (behind & hole)
+    # bridged: cells without a return, or whose one return lies back too (one return on the wall is measured
+    # wall: bridging those joined a sparse campaign's garage door with the whole façade, dev seed 25)
+    single_back = (ev.offset_n == 1) & (np.nan_to_num(ev.offset) < -0.5 * p.leaf_offset)
+    bridge = closed & ~known & ((ev.offset_n == 0) | single_back)
+    behind = ndimage.binary_opening(behind | bridge, structure=square(1)) | (behind & hole)
     labels, _ = ndimage.label(behind)
     for lab, sl in enumerate(ndimage.find_objects(labels), start=1):
         r0, r1, c0, c1 = sl[0].start, sl[0].stop, sl[1].start, sl[1].stop
