@@ -392,11 +392,14 @@ class _Visibility:
     weights: np.ndarray  # the campaign's vote weight per cell (1..4)
     opaque: np.ndarray | None = None  # share of the passing pulses returned just behind the wall (NaN: none)
     leaves: np.ndarray | None = None  # cells of door leaves nearly flush with the wall (their returns are no wall)
+    behind: np.ndarray | None = None  # per point of the surface: more than pass_depth behind the local wall
 
 
 def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens: np.ndarray, around: np.ndarray,
-                  ground_ids: np.ndarray, frame: FacadeFrame, params: FacadeParams) -> CellEvidence:
-    """Pulses per cell on the wall, through it and missed (:mod:`lidarmap.facade.evidence`)."""
+                  ground_ids: np.ndarray, frame: FacadeFrame,
+                  params: FacadeParams) -> tuple[CellEvidence, np.ndarray]:
+    """Pulses per cell on the wall, through it and missed (:mod:`lidarmap.facade.evidence`), and which points of
+    the surface lie more than ``pass_depth`` behind the local wall."""
     shape, cell = surf.shape, surf.cell
     s0, t0 = surf.extent[0], surf.extent[2]
     d = surf.sdt[:, 2]
@@ -422,7 +425,7 @@ def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens:
     ev.pulse_order = missed is not None
     ev.offset, ev.offset_n = wall_offset(surf.sdt[inside, 0], surf.sdt[inside, 1], rel[inside], shape, s0, t0,
                                          cell, params.evidence.leaf_band)
-    return ev
+    return ev, recessed
 
 
 def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: FacadeParams,
@@ -440,7 +443,7 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
     behind = a_sdt[:, 2] < -params.layers.layer_back
     through = through_cells(a_sdt[behind], a_sens[behind], shape, s0, t0, cell) > 0
     reachable = reach_mask(frame.to_facade(camp.track), shape, s0, t0, cell, camp.limits, params)
-    ev = _ray_evidence(camp, surf, a_sdt, a_sens, around, ground_ids, frame, params)
+    ev, behind_pts = _ray_evidence(camp, surf, a_sdt, a_sens, around, ground_ids, frame, params)
     ray = params.evidence.ray_evidence and ev.pulse_order  # without per-pulse times: the paper's rule
     if params.evidence.ray_evidence and not ev.pulse_order and camp.source not in _WARNED_SOURCES:
         _WARNED_SOURCES.add(camp.source)
@@ -473,7 +476,7 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
         opaque = recessed_share(ev)
         opaque[leaves] = 1.0  # a leaf returns every pulse, a few on the wall's side of pass_depth
     return _Visibility(values=values, ground_t=ground_t, below=below, unsampled=unsampled, weights=weights,
-                       opaque=opaque, leaves=leaves)
+                       opaque=opaque, leaves=leaves, behind=behind_pts if ray else None)
 
 
 class _Elements:
@@ -566,10 +569,19 @@ def _hole_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: F
     regions as unknown regions."""
     cell = surf.cell
     s0, s1, t0, t1 = surf.extent
-    wall_st = surf.sdt[surf.labels == surf.main_idx, :2]
-    if vis.leaves is not None and vis.leaves.any():  # a flush leaf's returns are on the main layer, not wall
+    on_main = surf.labels == surf.main_idx
+    wall_st = surf.sdt[on_main, :2]
+    if vis.leaves is not None and vis.leaves.any() or vis.behind is not None:
+        # a flush leaf's returns, and those of a leaf or pane a few cm back inside an opening, fall on the main
+        # layer but are no wall: taken as the last wall sample they pulled the sides 0.2-0.3 m into the opening
         row, col = cell_index(wall_st[:, 0], wall_st[:, 1], cell, s0, t0, surf.shape)
-        wall_st = wall_st[(row < 0) | ~vis.leaves[row, col]]
+        inside = row >= 0
+        not_wall = np.zeros(len(wall_st), dtype=bool)
+        if vis.leaves is not None:
+            not_wall[inside] = vis.leaves[row[inside], col[inside]]
+        if vis.behind is not None:
+            not_wall[inside] |= vis.behind[on_main][inside] & (vis.values[row[inside], col[inside]] == HOLE)
+        wall_st = wall_st[~not_wall]
     openings = detect_openings(vis.values, cell, params, ground_t=vis.ground_t, t0=t0, s0=s0, wall_st=wall_st,
                                opaque=vis.opaque)
     if params.openings.complete_by_repetition:

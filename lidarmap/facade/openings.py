@@ -190,7 +190,7 @@ def refine_bounds(rect: tuple[int, int, int, int], wall_st: np.ndarray | None, s
     sample nearest the opening, and "spacing" the median gap between consecutive samples across the side. Without
     enough points (``refine_min_points``) a side is its cell edge moved out by ``edge_bias_cells`` (a cell
     straddling the edge holds wall samples, so the hole is on average half a cell short). A side moves at most
-    ``refine_max_cells`` from its cell edge.
+    ``refine_max_cells`` from its cell edge outwards and ``refine_inward_cells`` into the opening.
     """
     r0, r1, c0, c1 = rect
     b = params.openings.edge_bias_cells * cell
@@ -200,6 +200,7 @@ def refine_bounds(rect: tuple[int, int, int, int], wall_st: np.ndarray | None, s
         return tuple(out)  # type: ignore[return-value]
     st = np.asarray(wall_st, dtype=np.float64)
     lim = params.openings.refine_max_cells * cell
+    inward = min(params.openings.refine_inward_cells * cell, lim)
     reach = lim + 2 * cell
     for k in range(4):
         axis = 0 if k < 2 else 1  # the coordinate across this side
@@ -224,7 +225,7 @@ def refine_bounds(rect: tuple[int, int, int, int], wall_st: np.ndarray | None, s
         if len(nearest) < 3:
             continue
         spacing = min(float(np.median(gaps)), 3 * cell) if len(gaps) else 0.0
-        pos = float(np.clip(np.median(nearest) - spacing / 2, -lim, lim))
+        pos = float(np.clip(np.median(nearest) - spacing / 2, -inward, lim))
         out[k] = edge + sign * pos
     return tuple(out)  # type: ignore[return-value]
 
@@ -298,7 +299,32 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
             continue
         kind = door_or_window(bounds, float(np.mean(ground[rect[2]:rect[3]])), mask, opaque, params)
         out.append(Opening(kind, mask, rect, eps, fill, occ_border, n_cells, region, bounds))
+    below_floor_level(out, ground, params)
     return out
+
+
+def below_floor_level(openings: list[Opening], ground: np.ndarray, params: FacadeParams) -> int:
+    """Doors lifted above the ground line (more than ``door_bottom_tol``; typed doors by their leaf within
+    ``door_leaf_tol``) that start more than ``door_floor_tol`` above the lowest door-tall opening of the same
+    façade become windows, in place; returns how many.
+
+    A door up some steps or on a ground floor raised above the street opens at the floor level; a ground-floor
+    window starts a sill above it. Glass with curtains closes a window like a leaf, so on a raised floor a tall
+    curtained window on a 0.8 m sill passes the ground test that admits the door beside it (issue 18, dev seed 22
+    building 6): the door of the same floor, starting lower, tells them apart."""
+    op = params.openings
+    tall = [o for o in openings if o.bounds is not None and o.kind in (ElementKind.WINDOW, ElementKind.DOOR)
+            and o.bounds[3] - o.bounds[2] >= op.door_min_height]
+    if len(tall) < 2:
+        return 0
+    floor = min(o.bounds[2] for o in tall)
+    done = 0
+    for o in tall:
+        lifted = o.bounds[2] > float(np.mean(ground[o.rect[2]:o.rect[3]])) + op.door_bottom_tol
+        if o.kind is ElementKind.DOOR and lifted and o.bounds[2] > floor + op.door_floor_tol:
+            o.kind = ElementKind.WINDOW
+            done += 1
+    return done
 
 
 def enclosed_by_wall(values: np.ndarray, rect: tuple[int, int, int, int], params: FacadeParams) -> bool:
