@@ -105,6 +105,31 @@ def test_vegetation_filter_takes_crowns_not_roofs_or_their_edges() -> None:
     assert len(only_roof) == len(roof) and not only_roof.any()
 
 
+def test_filter_keeps_low_last_returns_under_a_crown() -> None:
+    """A wall's foot inside a crown that hangs to the ground: its pulses end there (last returns, below 2.5 m), so
+    the filter leaves it building while it takes the crown; with ``vegetation_keep_below = 0`` it takes both."""
+    rng = np.random.default_rng(4)
+    ground = ground_grid()
+    tree = crown(rng, (20.0, 20.0, 3.0), 2.8, 2500)
+    foot = np.column_stack([np.full(60, 20.0), rng.uniform(18.5, 21.5, 60), rng.uniform(0.3, 2.0, 60)])
+    xyz = np.vstack([ground, tree, foot])
+    parts = [len(ground), len(tree), len(foot)]
+    attrs = {"classification": np.repeat([2, 1, 1], parts).astype(np.uint8),
+             "return_number": np.repeat([1, 1, 2], parts).astype(np.uint8),
+             "number_of_returns": np.repeat([1, 3, 2], parts).astype(np.uint8)}
+    cloud = PointCloud(xyz, attrs)
+    prob = np.repeat([0.0, 1.0, 1.0], parts).astype(np.float32)
+    is_tree, is_foot = np.repeat([False, True, False], parts), np.repeat([False, False, True], parts)
+    for height in (None, xyz[:, 2]):  # the ground from class 2, or the model's height above the ground
+        kept = without_vegetation(cloud, prob, PredictParams(), height=height) >= 0.5
+        assert kept[is_foot].all()
+        assert kept[is_tree].mean() < 0.05
+    taken_all = without_vegetation(cloud, prob, PredictParams(vegetation_keep_below=0.0)) >= 0.5
+    assert taken_all[is_foot].mean() < 0.2  # the crown would take the foot: the rule is what keeps it
+    high = dataclasses.replace(cloud, xyz=xyz + np.where(is_foot, 3.0, 0.0)[:, None] * [0, 0, 1])
+    assert (without_vegetation(high, prob, PredictParams()) >= 0.5)[is_foot].mean() < 0.2  # only LOW returns
+
+
 def test_vegetation_parameters_are_checked() -> None:
     with pytest.raises(ParameterError, match="vegetation_share must be in \\[0, 1\\], not 1.5"):
         PredictParams(vegetation_share=1.5)
