@@ -44,6 +44,8 @@ VEGETATION_CLASS = 5
 #: Output classes that ``write_vegetation`` may turn into :data:`VEGETATION_CLASS` (unclassified, demoted
 #: buildings, vegetation already): ground, water, bridges and the other labelled classes are never touched.
 VEGETATION_REWRITABLE = (0, 1, VEGETATION_CLASS)
+#: Neighbours of the vegetation filter's scattering test (:func:`lidarmap.segment.vegetation.vegetation_filter`).
+VEGETATION_K = 16
 #: Extra dimension (float32) of predicted files holding each point's building probability.
 PROBABILITY_DIM = "building_probability"
 METHODS = ("pointnet2", "baseline")
@@ -257,14 +259,15 @@ def predict_pointnet2(cloud: PointCloud, model: SegmentModel, params: PredictPar
                       report: Report | None = None, targets: np.ndarray | None = None) -> np.ndarray:
     """Building probability (float32) of every point of ``cloud``, or of the points of the boolean mask
     ``targets`` only (the windows cover them; the other points are context)."""
-    return pointnet2_with_height(cloud, model, params, report, targets)[0]
+    return pointnet2_with_features(cloud, model, params, report, targets)[0]
 
 
-def pointnet2_with_height(cloud: PointCloud, model: SegmentModel, params: PredictParams = PredictParams(),
-                          report: Report | None = None, targets: np.ndarray | None = None
-                          ) -> tuple[np.ndarray, np.ndarray | None]:
-    """:func:`predict_pointnet2` and the height above the ground (metres, every point of ``cloud``) that its
-    features used, so that the vegetation filter need not estimate the ground again (None for an empty cloud)."""
+def pointnet2_with_features(cloud: PointCloud, model: SegmentModel, params: PredictParams = PredictParams(),
+                            report: Report | None = None, targets: np.ndarray | None = None
+                            ) -> tuple[np.ndarray, PointFeatures | None]:
+    """:func:`predict_pointnet2` and the point features it computed (every point of ``cloud``: height above the
+    ground, scattering of the 16 nearest points), which the vegetation filter reuses instead of computing them
+    again (None for an empty cloud)."""
     if len(cloud) == 0 or (targets is not None and not targets.any()):
         return np.zeros(0 if targets is None else int(targets.sum()), np.float32), None
     pf = point_features(cloud, model.spec)
@@ -286,22 +289,23 @@ def pointnet2_with_height(cloud: PointCloud, model: SegmentModel, params: Predic
                 report(done, n_batches)
     fed = count > 0
     prob = spread_to_all(pf.xyz, fed, np.divide(total, count, out=np.zeros(len(cloud)), where=fed), targets)
-    return (prob if targets is None else prob[targets]).astype(np.float32), pf.xyz[:, 2] - pf.ground_z
+    return (prob if targets is None else prob[targets]).astype(np.float32), pf
 
 
 def predict(cloud: PointCloud, model: object, params: PredictParams = PredictParams(),
             report: Report | None = None, targets: np.ndarray | None = None) -> np.ndarray:
     """Building probabilities (float32) from a PointNet++ :class:`SegmentModel` or a baseline model: of every
     point, or of the points of the boolean mask ``targets`` (the others are context)."""
-    prob, height = model_probability(cloud, model, params, report, targets)
-    return without_vegetation(cloud, prob, params, targets, height) if params.vegetation else prob
+    prob, features = model_probability(cloud, model, params, report, targets)
+    return without_vegetation(cloud, prob, params, targets, features) if params.vegetation else prob
 
 
 def model_probability(cloud: PointCloud, model: object, params: PredictParams = PredictParams(),
                       report: Report | None = None, targets: np.ndarray | None = None
-                      ) -> tuple[np.ndarray, np.ndarray | None]:
+                      ) -> tuple[np.ndarray, PointFeatures | None]:
     """The model's building probabilities (of every point, or of ``targets``) before the vegetation filter, and
-    the height above the ground of every point where the model computed one (PointNet++; else None)."""
+    the point features of every point where the model computed them (PointNet++; else None), for
+    :func:`without_vegetation`."""
     from lidarmap.segment.baseline import BaselineModel, predict_baseline
 
     if isinstance(model, BaselineModel):
@@ -309,29 +313,40 @@ def model_probability(cloud: PointCloud, model: object, params: PredictParams = 
             prob = predict_baseline(cloud, model)
         return (prob if targets is None else prob[targets]), None
     if isinstance(model, SegmentModel):
-        return pointnet2_with_height(cloud, model, params, report, targets)
+        return pointnet2_with_features(cloud, model, params, report, targets)
     raise TypeError(f"not a segmentation model: {type(model).__name__}")
 
 
 def without_vegetation(cloud: PointCloud, probability: np.ndarray, params: PredictParams,
-                       targets: np.ndarray | None = None, height: np.ndarray | None = None) -> np.ndarray:
+                       targets: np.ndarray | None = None, features: PointFeatures | None = None) -> np.ndarray:
     """``probability`` (of every point, or of ``targets``) with 0 for the points above the threshold that the
     vegetation filter calls vegetation (their neighbourhoods include every point of ``cloud``), except the low
-    last returns of :func:`solid_low_returns`. ``height``: height above the ground of every point of ``cloud``
-    (metres; estimated here when not given and needed)."""
+    last returns of :func:`solid_low_returns`. ``features``: the PointNet++ features of every point of ``cloud``
+    (:func:`model_probability`), whose height above the ground and scattering are reused; without them both are
+    computed here."""
     index = np.arange(len(cloud)) if targets is None else np.flatnonzero(targets)
     above = np.flatnonzero(probability >= params.threshold)
     if len(above) == 0:
         return probability
     xyz = cloud.xyz * metre_factors(cloud)
     veg = vegetation_filter(xyz, cloud.attrs.get("number_of_returns"), index[above], params.vegetation_radius,
-                            params.vegetation_share, params.vegetation_scattering, params.vegetation_vote)
+                            params.vegetation_share, params.vegetation_scattering, params.vegetation_vote,
+                            scattering=feature_channel(features, "scattering", VEGETATION_K))
+    height = None if features is None else features.xyz[:, 2] - features.ground_z
     taken = index[above[veg]]
     if params.vegetation_keep_below > 0 and len(taken):
         veg[veg] = ~solid_low_returns(cloud, xyz, taken, params.vegetation_keep_below, height)
     out = np.array(probability, np.float32, copy=True)
     out[above[veg]] = 0.0
     return out
+
+
+def feature_channel(features: PointFeatures | None, name: str, k: int) -> np.ndarray | None:
+    """One per-point shape channel of ``features`` computed from ``k`` neighbours (None without features, when
+    the spec has no such channel or used another neighbour count)."""
+    if features is None or name not in features.channels or features.geometry_k != k:
+        return None
+    return features.values[:, features.channels.index(name)]
 
 
 def solid_low_returns(cloud: PointCloud, xyz: np.ndarray, index: np.ndarray, below: float,
