@@ -305,8 +305,10 @@ def main() -> None:
     print(f"### Inference throughput ({THREADS} threads, CPU)\n")
     print("Input points per second of `predict` (features + ground estimate + overlapping windows + network + "
           "vegetation filter, or features + classifier + filter), over the held-out parts and the simulated city; "
-          "wall seconds, and CPU seconds of the process (all threads; CPU s / 2 = the wall time two free cores "
-          "would need). The PointNet++ variants share the network's seconds.\n")
+          "wall seconds, and CPU seconds of the process (all threads): less disturbed by other jobs than wall "
+          "time, so fit to compare the variants of one run; CPU s / 2 is not a quiet-machine time (parts of the "
+          "path run on one thread, and under contention waiting OpenMP threads spin and count). The PointNet++ "
+          "variants share the network's seconds.\n")
     print("| method | held-out points | wall s | points/s | CPU s | points/s at CPU s / 2 | simulated points | wall s "
           "| points/s |")
     print("|---|---|---|---|---|---|---|---|---|")
