@@ -10,6 +10,7 @@ probability, also in areas smaller than one block (one window covers them all).
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import dataclasses
 import math
 import os
@@ -69,6 +70,11 @@ class PredictParams:
     window_weight ("tent"): how the windows that saw a point are averaged: "tent" weighs each by how central the
         point lies in it ((1 - |dx|/half)(1 - |dy|/half)), "uniform" equally.
     threads (0): torch CPU threads; 0 = one per core.
+    keep_memory (True): while ``predict`` runs (features, network, filter), freed memory stays with the process (glibc: no separate mapping
+        for large blocks, no trimming; restored and trimmed afterwards; :func:`kept_memory`), so the network's
+        large temporaries (64-128 MB per batch of 32 windows) are not page-faulted in afresh at every layer. Same
+        output; measured on the held-out parts in docs/segmentation.md ("Memory").
+        No effect where the C library has no ``mallopt`` (macOS, Windows).
     device ("auto"): "cpu", "cuda" or "auto" (a GPU when there is one).
     vegetation (True): after the model, points it calls building that look like vegetation get probability 0
         (:func:`lidarmap.segment.vegetation.vegetation_filter`): at least ``vegetation_share`` of the points within
@@ -118,6 +124,7 @@ class PredictParams:
     rotations: int = 1
     window_weight: str = "tent"
     threads: int = 0
+    keep_memory: bool = True
     device: str = "auto"
     vegetation: bool = True
     vegetation_radius: float = 3.5
@@ -150,6 +157,50 @@ def pick_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(name)
+
+
+#: glibc ``mallopt`` parameters (malloc.h) and their defaults, restored after :func:`kept_memory`.
+M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4
+DEFAULT_TRIM_THRESHOLD, DEFAULT_MMAP_MAX = 128 * 1024, 65536
+
+
+def _libc() -> object | None:
+    """The C library when it has glibc's ``mallopt`` and ``malloc_trim`` (None elsewhere)."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return None
+    return libc if hasattr(libc, "mallopt") and hasattr(libc, "malloc_trim") else None
+
+
+@contextlib.contextmanager
+def kept_memory(enabled: bool = True) -> Iterator[None]:
+    """Inside the block, glibc keeps freed memory for reuse: blocks of any size come from the heap (no mmap per
+    allocation) and the heap is not trimmed. Every batch of the network allocates and frees tensors of 64-128 MB;
+    by default glibc maps each one afresh and the kernel zero-fills it page by page (hundreds of thousands of page
+    faults per tile). Afterwards the defaults are restored and the free memory handed back (``malloc_trim``).
+    Process-wide while it lasts (other threads allocate the same way meanwhile); nested blocks restore only at the
+    outermost; a no-op without glibc."""
+    libc = _libc() if enabled else None
+    if libc is None:
+        yield
+        return
+    if _KEPT[0] == 0:
+        libc.mallopt(M_MMAP_MAX, 0)
+        libc.mallopt(M_TRIM_THRESHOLD, 2**31 - 1)
+    _KEPT[0] += 1
+    try:
+        yield
+    finally:
+        _KEPT[0] -= 1
+        if _KEPT[0] == 0:
+            libc.mallopt(M_MMAP_MAX, DEFAULT_MMAP_MAX)
+            libc.mallopt(M_TRIM_THRESHOLD, DEFAULT_TRIM_THRESHOLD)
+            libc.malloc_trim(0)
+
+
+#: Depth of nested :func:`kept_memory` blocks (the settings are restored when the outermost ends).
+_KEPT = [0]
 
 
 @contextlib.contextmanager
@@ -278,7 +329,7 @@ def pointnet2_with_features(cloud: PointCloud, model: SegmentModel, params: Pred
     count = np.zeros(len(cloud))
     windows = plan_windows(pf, model, params, targets)
     n_batches = math.ceil(len(windows) / windows_per_batch(params))
-    with torch_threads(params.threads), torch.inference_mode():
+    with torch_threads(params.threads), torch.inference_mode(), kept_memory(params.keep_memory):
         for done, (index, weight, xyz, channels) in enumerate(window_batches(pf, model, params, windows, rng), 1):
             logits = net(torch.from_numpy(xyz).to(device), torch.from_numpy(channels).to(device))
             prob = torch.softmax(logits.float(), dim=-1)[..., 1].cpu().numpy()
@@ -296,8 +347,9 @@ def predict(cloud: PointCloud, model: object, params: PredictParams = PredictPar
             report: Report | None = None, targets: np.ndarray | None = None) -> np.ndarray:
     """Building probabilities (float32) from a PointNet++ :class:`SegmentModel` or a baseline model: of every
     point, or of the points of the boolean mask ``targets`` (the others are context)."""
-    prob, features = model_probability(cloud, model, params, report, targets)
-    return without_vegetation(cloud, prob, params, targets, features) if params.vegetation else prob
+    with kept_memory(params.keep_memory):
+        prob, features = model_probability(cloud, model, params, report, targets)
+        return without_vegetation(cloud, prob, params, targets, features) if params.vegetation else prob
 
 
 def model_probability(cloud: PointCloud, model: object, params: PredictParams = PredictParams(),
