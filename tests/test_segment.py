@@ -15,6 +15,7 @@ from pyproj import CRS
 from lidarmap.core import PointCloud
 from lidarmap.errors import InputError
 from lidarmap.io.las import read_las, write_las
+from lidarmap.segment import predict as predict_module
 from lidarmap.segment.baseline import (
     BaselineParams,
     load_baseline,
@@ -38,6 +39,7 @@ from lidarmap.segment.predict import (
     PROBABILITY_DIM,
     PredictParams,
     apply_classes,
+    kept_memory,
     predict,
     segmented_cloud,
     spread_to_all,
@@ -250,6 +252,13 @@ def test_predict_covers_every_point_and_is_deterministic(tiny_model) -> None:
         np.testing.assert_array_equal(prob, predict(c, model, PredictParams(seed=3)))
     scored = evaluate_classes(cloud.attrs["classification"], predict(hide_labels(cloud), model) >= 0.5)
     assert scored["overall_accuracy"] > 0.85
+    # keep_memory changes where freed memory goes, never the answer; nested blocks and errors restore the settings
+    np.testing.assert_array_equal(predict(cloud, model, PredictParams(seed=3, keep_memory=False)),
+                                  predict(cloud, model, PredictParams(seed=3)))
+    with pytest.raises(RuntimeError, match="inside"), kept_memory(), kept_memory():
+        assert predict_module._KEPT[0] == (2 if predict_module._libc() else 0)
+        raise RuntimeError("inside")
+    assert predict_module._KEPT[0] == 0
 
 
 def test_model_file_round_trip_and_spec_mismatch(tmp_path: Path, tiny_model) -> None:

@@ -122,6 +122,8 @@ class PointFeatures:
     values: np.ndarray  # float32 (N, C - 4): channels after x, y, z, hag
     frame: LocalFrame
     ground_source: str  # "class 2" or "estimated"
+    channels: tuple[str, ...] = ()  # names of the columns of ``values`` (the spec's channels after x, y, z, hag)
+    geometry_k: int = 0  # neighbours of the shape channels (the spec's geometry_k)
 
     def __len__(self) -> int:
         return len(self.xyz)
@@ -232,7 +234,8 @@ def point_features(cloud: PointCloud, spec: FeatureSpec) -> PointFeatures:
     columns = [robust_unit(intensity) if intensity is not None else np.zeros(len(cloud), np.float32)]
     values = np.column_stack(columns + [_returns(cloud), shape_channels(xyz, spec)]
                              + ([_colour(cloud)] if spec.use_rgb else []))
-    return PointFeatures(xyz, ground_z, values.astype(np.float32), frame, source)
+    return PointFeatures(xyz, ground_z, values.astype(np.float32), frame, source, tuple(spec.channels[4:]),
+                         spec.geometry_k)
 
 
 #: An augmentation: (xyz_local float32 (P, 3), hag float32 (P,)) -> the same, transformed.

@@ -10,6 +10,7 @@ probability, also in areas smaller than one block (one window covers them all).
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import dataclasses
 import math
 import os
@@ -26,9 +27,11 @@ from lidarmap.core import PointCloud
 from lidarmap.segment.blocks import column_members, sample_indices, window_centres
 from lidarmap.segment.features import (
     BUILDING_CLASS,
+    FeatureSpec,
     PointFeatures,
     Transform,
     block_input,
+    ground_grid,
     metre_factors,
     point_features,
 )
@@ -42,6 +45,8 @@ VEGETATION_CLASS = 5
 #: Output classes that ``write_vegetation`` may turn into :data:`VEGETATION_CLASS` (unclassified, demoted
 #: buildings, vegetation already): ground, water, bridges and the other labelled classes are never touched.
 VEGETATION_REWRITABLE = (0, 1, VEGETATION_CLASS)
+#: Neighbours of the vegetation filter's scattering test (:func:`lidarmap.segment.vegetation.vegetation_filter`).
+VEGETATION_K = 16
 #: Extra dimension (float32) of predicted files holding each point's building probability.
 PROBABILITY_DIM = "building_probability"
 METHODS = ("pointnet2", "baseline")
@@ -65,6 +70,11 @@ class PredictParams:
     window_weight ("tent"): how the windows that saw a point are averaged: "tent" weighs each by how central the
         point lies in it ((1 - |dx|/half)(1 - |dy|/half)), "uniform" equally.
     threads (0): torch CPU threads; 0 = one per core.
+    keep_memory (True): while ``predict`` runs (features, network, filter), freed memory stays with the process (glibc: no separate mapping
+        for large blocks, no trimming; restored and trimmed afterwards; :func:`kept_memory`), so the network's
+        large temporaries (64-128 MB per batch of 32 windows) are not page-faulted in afresh at every layer. Same
+        output; measured on the held-out parts in docs/segmentation.md ("Memory").
+        No effect where the C library has no ``mallopt`` (macOS, Windows).
     device ("auto"): "cpu", "cuda" or "auto" (a GPU when there is one).
     vegetation (True): after the model, points it calls building that look like vegetation get probability 0
         (:func:`lidarmap.segment.vegetation.vegetation_filter`): at least ``vegetation_share`` of the points within
@@ -73,6 +83,11 @@ class PredictParams:
         Defaults chosen on the recipe's training parts (docs/segmentation.md).
     vegetation_radius (3.5), vegetation_share (0.75), vegetation_scattering (0.03), vegetation_vote (0.7): see
         vegetation.
+    vegetation_keep_below (2.5): metres above the ground under which the filter keeps the last returns of their
+        pulse (single returns included) as the model called them: a pulse that ends low under a crown hit something
+        solid there (a wall's foot, a low roof, a fence), not the crown. 0 = the filter judges every point. Chosen
+        on the recipe's training parts (docs/segmentation.md): on the Delft training strip it gives back 31 % of
+        the labelled building points the filter took, and 1 of its 31,488 removed tree-like points.
     write_vegetation (False): also write class 5 (high vegetation) for the points the model calls not-building that
         the same vegetation test accepts, that stand at least ``vegetation_min_height`` m above the ground, after
         which their pulse went on (not single or last returns), and whose output class would be 0, 1 or 5
@@ -97,6 +112,7 @@ class PredictParams:
         "vegetation_share": "[0, 1]",
         "vegetation_scattering": "[0, 1]",
         "vegetation_vote": "[0, 1]",
+        "vegetation_keep_below": ">= 0",
         "vegetation_min_height": ">= 0",
     }
 
@@ -108,12 +124,14 @@ class PredictParams:
     rotations: int = 1
     window_weight: str = "tent"
     threads: int = 0
+    keep_memory: bool = True
     device: str = "auto"
     vegetation: bool = True
     vegetation_radius: float = 3.5
     vegetation_share: float = 0.75
     vegetation_scattering: float = 0.03
     vegetation_vote: float = 0.7
+    vegetation_keep_below: float = 2.5
     write_vegetation: bool = False
     vegetation_min_height: float = 2.0
 
@@ -139,6 +157,50 @@ def pick_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(name)
+
+
+#: glibc ``mallopt`` parameters (malloc.h) and their defaults, restored after :func:`kept_memory`.
+M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4
+DEFAULT_TRIM_THRESHOLD, DEFAULT_MMAP_MAX = 128 * 1024, 65536
+
+
+def _libc() -> object | None:
+    """The C library when it has glibc's ``mallopt`` and ``malloc_trim`` (None elsewhere)."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return None
+    return libc if hasattr(libc, "mallopt") and hasattr(libc, "malloc_trim") else None
+
+
+@contextlib.contextmanager
+def kept_memory(enabled: bool = True) -> Iterator[None]:
+    """Inside the block, glibc keeps freed memory for reuse: blocks of any size come from the heap (no mmap per
+    allocation) and the heap is not trimmed. Every batch of the network allocates and frees tensors of 64-128 MB;
+    by default glibc maps each one afresh and the kernel zero-fills it page by page (hundreds of thousands of page
+    faults per tile). Afterwards the defaults are restored and the free memory handed back (``malloc_trim``).
+    Process-wide while it lasts (other threads allocate the same way meanwhile); nested blocks restore only at the
+    outermost; a no-op without glibc."""
+    libc = _libc() if enabled else None
+    if libc is None:
+        yield
+        return
+    if _KEPT[0] == 0:
+        libc.mallopt(M_MMAP_MAX, 0)
+        libc.mallopt(M_TRIM_THRESHOLD, 2**31 - 1)
+    _KEPT[0] += 1
+    try:
+        yield
+    finally:
+        _KEPT[0] -= 1
+        if _KEPT[0] == 0:
+            libc.mallopt(M_MMAP_MAX, DEFAULT_MMAP_MAX)
+            libc.mallopt(M_TRIM_THRESHOLD, DEFAULT_TRIM_THRESHOLD)
+            libc.malloc_trim(0)
+
+
+#: Depth of nested :func:`kept_memory` blocks (the settings are restored when the outermost ends).
+_KEPT = [0]
 
 
 @contextlib.contextmanager
@@ -248,8 +310,17 @@ def predict_pointnet2(cloud: PointCloud, model: SegmentModel, params: PredictPar
                       report: Report | None = None, targets: np.ndarray | None = None) -> np.ndarray:
     """Building probability (float32) of every point of ``cloud``, or of the points of the boolean mask
     ``targets`` only (the windows cover them; the other points are context)."""
+    return pointnet2_with_features(cloud, model, params, report, targets)[0]
+
+
+def pointnet2_with_features(cloud: PointCloud, model: SegmentModel, params: PredictParams = PredictParams(),
+                            report: Report | None = None, targets: np.ndarray | None = None
+                            ) -> tuple[np.ndarray, PointFeatures | None]:
+    """:func:`predict_pointnet2` and the point features it computed (every point of ``cloud``: height above the
+    ground, scattering of the 16 nearest points), which the vegetation filter reuses instead of computing them
+    again (None for an empty cloud)."""
     if len(cloud) == 0 or (targets is not None and not targets.any()):
-        return np.zeros(0 if targets is None else int(targets.sum()), np.float32)
+        return np.zeros(0 if targets is None else int(targets.sum()), np.float32), None
     pf = point_features(cloud, model.spec)
     rng = np.random.default_rng(params.seed)
     device = pick_device(params.device)
@@ -258,7 +329,7 @@ def predict_pointnet2(cloud: PointCloud, model: SegmentModel, params: PredictPar
     count = np.zeros(len(cloud))
     windows = plan_windows(pf, model, params, targets)
     n_batches = math.ceil(len(windows) / windows_per_batch(params))
-    with torch_threads(params.threads), torch.inference_mode():
+    with torch_threads(params.threads), torch.inference_mode(), kept_memory(params.keep_memory):
         for done, (index, weight, xyz, channels) in enumerate(window_batches(pf, model, params, windows, rng), 1):
             logits = net(torch.from_numpy(xyz).to(device), torch.from_numpy(channels).to(device))
             prob = torch.softmax(logits.float(), dim=-1)[..., 1].cpu().numpy()
@@ -269,40 +340,83 @@ def predict_pointnet2(cloud: PointCloud, model: SegmentModel, params: PredictPar
                 report(done, n_batches)
     fed = count > 0
     prob = spread_to_all(pf.xyz, fed, np.divide(total, count, out=np.zeros(len(cloud)), where=fed), targets)
-    return (prob if targets is None else prob[targets]).astype(np.float32)
+    return (prob if targets is None else prob[targets]).astype(np.float32), pf
 
 
 def predict(cloud: PointCloud, model: object, params: PredictParams = PredictParams(),
             report: Report | None = None, targets: np.ndarray | None = None) -> np.ndarray:
     """Building probabilities (float32) from a PointNet++ :class:`SegmentModel` or a baseline model: of every
     point, or of the points of the boolean mask ``targets`` (the others are context)."""
+    with kept_memory(params.keep_memory):
+        prob, features = model_probability(cloud, model, params, report, targets)
+        return without_vegetation(cloud, prob, params, targets, features) if params.vegetation else prob
+
+
+def model_probability(cloud: PointCloud, model: object, params: PredictParams = PredictParams(),
+                      report: Report | None = None, targets: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, PointFeatures | None]:
+    """The model's building probabilities (of every point, or of ``targets``) before the vegetation filter, and
+    the point features of every point where the model computed them (PointNet++; else None), for
+    :func:`without_vegetation`."""
     from lidarmap.segment.baseline import BaselineModel, predict_baseline
 
     if isinstance(model, BaselineModel):
         with torch_threads(params.threads):
             prob = predict_baseline(cloud, model)
-        prob = prob if targets is None else prob[targets]
-    elif isinstance(model, SegmentModel):
-        prob = predict_pointnet2(cloud, model, params, report, targets)
-    else:
-        raise TypeError(f"not a segmentation model: {type(model).__name__}")
-    return without_vegetation(cloud, prob, params, targets) if params.vegetation else prob
+        return (prob if targets is None else prob[targets]), None
+    if isinstance(model, SegmentModel):
+        return pointnet2_with_features(cloud, model, params, report, targets)
+    raise TypeError(f"not a segmentation model: {type(model).__name__}")
 
 
 def without_vegetation(cloud: PointCloud, probability: np.ndarray, params: PredictParams,
-                       targets: np.ndarray | None = None) -> np.ndarray:
+                       targets: np.ndarray | None = None, features: PointFeatures | None = None) -> np.ndarray:
     """``probability`` (of every point, or of ``targets``) with 0 for the points above the threshold that the
-    vegetation filter calls vegetation (their neighbourhoods include every point of ``cloud``)."""
+    vegetation filter calls vegetation (their neighbourhoods include every point of ``cloud``), except the low
+    last returns of :func:`solid_low_returns`. ``features``: the PointNet++ features of every point of ``cloud``
+    (:func:`model_probability`), whose height above the ground and scattering are reused; without them both are
+    computed here."""
     index = np.arange(len(cloud)) if targets is None else np.flatnonzero(targets)
     above = np.flatnonzero(probability >= params.threshold)
     if len(above) == 0:
         return probability
     xyz = cloud.xyz * metre_factors(cloud)
     veg = vegetation_filter(xyz, cloud.attrs.get("number_of_returns"), index[above], params.vegetation_radius,
-                            params.vegetation_share, params.vegetation_scattering, params.vegetation_vote)
+                            params.vegetation_share, params.vegetation_scattering, params.vegetation_vote,
+                            scattering=feature_channel(features, "scattering", VEGETATION_K))
+    height = None if features is None else features.xyz[:, 2] - features.ground_z
+    taken = index[above[veg]]
+    if params.vegetation_keep_below > 0 and len(taken):
+        veg[veg] = ~solid_low_returns(cloud, xyz, taken, params.vegetation_keep_below, height)
     out = np.array(probability, np.float32, copy=True)
     out[above[veg]] = 0.0
     return out
+
+
+def feature_channel(features: PointFeatures | None, name: str, k: int) -> np.ndarray | None:
+    """One per-point shape channel of ``features`` computed from ``k`` neighbours (None without features, when
+    the spec has no such channel or used another neighbour count)."""
+    if features is None or name not in features.channels or features.geometry_k != k:
+        return None
+    return features.values[:, features.channels.index(name)]
+
+
+def solid_low_returns(cloud: PointCloud, xyz: np.ndarray, index: np.ndarray, below: float,
+                      height: np.ndarray | None = None) -> np.ndarray:
+    """Which points of ``index`` end their pulse (last or single return) less than ``below`` metres above the
+    ground: under a crown such a pulse hit something solid -- a wall's foot, a low roof, a fence -- and the crown
+    around it should not take it. ``height`` (every point of the cloud) or else the estimated ground (class 2 when
+    the file has enough)."""
+    number, count = cloud.attrs.get("return_number"), cloud.attrs.get("number_of_returns")
+    if number is None or count is None:
+        return np.zeros(len(index), bool)
+    last = np.asarray(number)[index] >= np.asarray(count)[index]
+    if height is None:
+        grid, _ = ground_grid(xyz, cloud.attrs.get("classification"), FeatureSpec())
+        low = xyz[index, 2] - grid.height_at(xyz[index, :2]) < below
+    else:
+        low = np.asarray(height)[index] < below
+    return last & low
 
 
 def apply_classes(classification: np.ndarray, probability: np.ndarray, threshold: float = 0.5,

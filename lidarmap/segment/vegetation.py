@@ -143,23 +143,26 @@ def scattering_at(tree: cKDTree, query: np.ndarray, k: int) -> np.ndarray:
 
 def vegetation_filter(xyz: np.ndarray, number_of_returns: np.ndarray | None, candidates: np.ndarray,
                       radius: float, min_share: float, min_scattering: float, vote: float,
-                      k: int = 16, vote_k: int = 24) -> np.ndarray:
+                      k: int = 16, vote_k: int = 24, scattering: np.ndarray | None = None) -> np.ndarray:
     """Which of the ``candidates`` (indices into ``xyz``, metres) look like vegetation to a LiDAR: at least
     ``min_share`` of the points within ``radius`` belong to multi-return pulses (a porous crown; a roof edge's
     sphere is mostly single returns on the roof) and the ``k`` nearest points scatter (scattering >=
     ``min_scattering``: not a plane); then a vote smooths the answer: a candidate is vegetation when at least
     ``vote`` of its ``vote_k`` nearest candidates passed (thin lines of roof edges are outvoted by their roofs,
     single crown points that missed are carried by their crown). Boolean mask over ``candidates``; none without
-    return counts."""
+    return counts. ``scattering``: the scattering of the ``k`` nearest points of every point of ``xyz`` when the
+    caller has it already (the network's shape channel), else computed here."""
     candidates = np.asarray(candidates, np.int64)
     if number_of_returns is None or len(candidates) == 0:
         return np.zeros(len(candidates), bool)
     multi = np.asarray(number_of_returns) > 1
-    tree = cKDTree(xyz)
     query = xyz[candidates]
     porous = multi_return_share(xyz, multi, query, radius) >= min_share
     passed = np.zeros(len(candidates), bool)
-    passed[porous] = scattering_at(tree, query[porous], k) >= min_scattering
+    if scattering is None:
+        passed[porous] = scattering_at(cKDTree(xyz), query[porous], k) >= min_scattering
+    else:
+        passed[porous] = np.asarray(scattering)[candidates[porous]] >= min_scattering
     if not passed.any():
         return passed
     return vote_vegetation(query, passed, vote, vote_k)
