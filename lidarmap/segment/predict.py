@@ -282,7 +282,7 @@ def spread_to_all(xyz: np.ndarray, fed: np.ndarray, prob: np.ndarray, targets: n
         return prob
     known = np.flatnonzero(fed)
     k = min(3, len(known))
-    dist, near = cKDTree(xyz[known]).query(xyz[missing], k=k)
+    dist, near = cKDTree(xyz[known]).query(xyz[missing], k=k, workers=-1)
     dist, near = dist.reshape(len(missing), k), near.reshape(len(missing), k)
     weight = 1.0 / (dist**2 + 1e-4)
     out = prob.copy()
