@@ -421,7 +421,8 @@ def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens:
         max_range = camp.limits[0] * params.occlusion.reach_margin
         missed = missed_pulse_crossings(seq_sdt, seq_sens, camp.gps[ids], max_range, params)
     ev = cell_evidence(surf.sdt[on_wall], sens_sdt[on_wall], behind_sdt, behind_sens, is_deep,
-                       missed if missed is not None else (np.zeros(0),) * 3, shape, s0, t0, cell)
+                       missed if missed is not None else (np.zeros(0),) * 3, shape, s0, t0, cell,
+                       front_sdt=surf.sdt[inside & (rel > pass_depth)])
     ev.pulse_order = missed is not None
     ev.offset, ev.offset_n = wall_offset(surf.sdt[inside, 0], surf.sdt[inside, 1], rel[inside], shape, s0, t0,
                                          cell, params.evidence.leaf_band)
