@@ -230,7 +230,8 @@ def cell_evidence(wall_sdt: np.ndarray, wall_sensors: np.ndarray, behind_sdt: np
 def opening_cells(ev: CellEvidence, params: FacadeParams) -> np.ndarray:
     """Cells the laser went through: at least ``min_pass_pulses`` pulses passed the plane there and at most
     ``max_wall_share`` of the cell's pulses returned from the wall; cells with no pulse at all within
-    ``evidence_grow_cells`` of such a cell join it: the scan lines of a far façade are further apart than a cell."""
+    ``evidence_grow_cells`` of such a cell join it: the scan lines of a far façade are further apart than a cell.
+    Cells with returns in front of the wall (``ev.front``: open shutters beside a window) are no such gap."""
     p = params.evidence
     passed, pulses = ev.passed, ev.pulses
     hole = (passed >= p.min_pass_pulses) & (ev.wall <= p.max_wall_share * pulses)
