@@ -42,6 +42,7 @@ class CellEvidence:
     pulse_order: bool = True  # whether GPS times ordered the pulses (else ``missed`` could not be counted)
     offset: np.ndarray | None = None  # mean depth of the returns near the wall relative to it (NaN: none)
     offset_n: np.ndarray | None = None  # how many returns that mean is over
+    front: np.ndarray | None = None  # returns more than pass_depth in front of the wall (shutters, pilasters)
 
     @property
     def passed(self) -> np.ndarray:
@@ -200,10 +201,11 @@ def _count(s: np.ndarray, t: np.ndarray, shape: tuple[int, int], s0: float, t0: 
 
 def cell_evidence(wall_sdt: np.ndarray, wall_sensors: np.ndarray, behind_sdt: np.ndarray, behind_sensors: np.ndarray,
                   deep: np.ndarray, missed: tuple[np.ndarray, np.ndarray, np.ndarray], shape: tuple[int, int],
-                  s0: float, t0: float, cell: float) -> CellEvidence:
+                  s0: float, t0: float, cell: float, front_sdt: np.ndarray | None = None) -> CellEvidence:
     """Count the pulses per cell: ``wall_sdt`` returns on the wall, ``behind_sdt`` returns behind it (``deep``:
     farther than layer_back, else recessed), each at the crossing of its ray with the plane, and the ``missed``
-    crossings of :func:`missed_pulse_crossings`."""
+    crossings of :func:`missed_pulse_crossings`; ``front_sdt``: returns in front of the wall (counted apart: no
+    pulse through the plane, no wall either)."""
     s, t, lam = project_rays(behind_sdt, behind_sensors)
     ok = np.isfinite(lam)
     wall_dir = wall_sdt - wall_sensors
@@ -220,19 +222,24 @@ def cell_evidence(wall_sdt: np.ndarray, wall_sensors: np.ndarray, behind_sdt: np
                + _count(ms, mt, shape, s0, t0, cell, mcos))
     total = wall + recessed + through + missed_n
     cos_mean = np.where(total > 0, cos_sum / np.maximum(total, 1), 0.0)
-    return CellEvidence(wall=wall, recessed=recessed, through=through, missed=missed_n, cos_incidence=cos_mean)
+    front = None if front_sdt is None else _count(front_sdt[:, 0], front_sdt[:, 1], shape, s0, t0, cell)
+    return CellEvidence(wall=wall, recessed=recessed, through=through, missed=missed_n, cos_incidence=cos_mean,
+                        front=front)
 
 
 def opening_cells(ev: CellEvidence, params: FacadeParams) -> np.ndarray:
     """Cells the laser went through: at least ``min_pass_pulses`` pulses passed the plane there and at most
     ``max_wall_share`` of the cell's pulses returned from the wall; cells with no pulse at all within
-    ``evidence_grow_cells`` of such a cell join it: the scan lines of a far façade are further apart than a cell."""
+    ``evidence_grow_cells`` of such a cell join it: the scan lines of a far façade are further apart than a cell.
+    Cells with returns in front of the wall (``ev.front``: open shutters beside a window) are no such gap."""
     p = params.evidence
     passed, pulses = ev.passed, ev.pulses
     hole = (passed >= p.min_pass_pulses) & (ev.wall <= p.max_wall_share * pulses)
     k = p.evidence_grow_cells
     if k > 0 and hole.any():  # the edge lies somewhere between the last pulse through and the first on the wall
-        hole |= ndimage.binary_dilation(hole, structure=square(k)) & (pulses == 0)
+        # a cell whose pulses stopped in front of the wall (an open shutter beside the window) is no gap
+        empty = (pulses == 0) if ev.front is None else (pulses == 0) & (ev.front == 0)
+        hole |= ndimage.binary_dilation(hole, structure=square(k)) & empty
     return hole
 
 

@@ -421,7 +421,8 @@ def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens:
         max_range = camp.limits[0] * params.occlusion.reach_margin
         missed = missed_pulse_crossings(seq_sdt, seq_sens, camp.gps[ids], max_range, params)
     ev = cell_evidence(surf.sdt[on_wall], sens_sdt[on_wall], behind_sdt, behind_sens, is_deep,
-                       missed if missed is not None else (np.zeros(0),) * 3, shape, s0, t0, cell)
+                       missed if missed is not None else (np.zeros(0),) * 3, shape, s0, t0, cell,
+                       front_sdt=surf.sdt[inside & (rel > pass_depth) & (d < params.occlusion.occluder_min_depth)])
     ev.pulse_order = missed is not None
     ev.offset, ev.offset_n = wall_offset(surf.sdt[inside, 0], surf.sdt[inside, 1], rel[inside], shape, s0, t0,
                                          cell, params.evidence.leaf_band)
@@ -459,6 +460,9 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
     leaves, crossed_leaf = door_leaves(ev, passed, ground_t, t0, cell, params) if ray else (no_cells, no_cells)
     passed = passed | leaves | crossed_leaf
     observed = surf.observed & ~(passed if ray else (through & ~surf.observed_raw))
+    if ray and ev.front is not None:
+        # returns a few cm in front of the wall (open shutters, relief) sampled the cell even where they fit no layer
+        observed |= (ev.front > 0) & ~passed
     if params.openings.occlusion_grow_cells > 0:
         grow = square(params.openings.occlusion_grow_cells)
         occluded = occluded | (ndimage.binary_dilation(occluded, structure=grow) & ~observed & ~passed)
