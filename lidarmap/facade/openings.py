@@ -43,8 +43,8 @@ def window_uncertainty_eq3(values: np.ndarray, rect: tuple[int, int, int, int]) 
     return (n_diff + n_obj) / n_hole
 
 
-def integral_image(mask: np.ndarray) -> np.ndarray:
-    out = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), dtype=np.int64)
+def integral_image(mask: np.ndarray, dtype=np.int64) -> np.ndarray:
+    out = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), dtype=dtype)
     out[1:, 1:] = np.cumsum(np.cumsum(mask, axis=0), axis=1)
     return out
 

@@ -466,12 +466,6 @@ def weighted_window_uncertainty(window_votes: np.ndarray, object_votes: np.ndarr
     return (n_hole - int(w[inside].sum()) + 2 * int(o[inside].sum())) / n_hole
 
 
-def _float_integral(values: np.ndarray) -> np.ndarray:
-    out = np.zeros((values.shape[0] + 1, values.shape[1] + 1), dtype=np.float64)
-    out[1:, 1:] = np.cumsum(np.cumsum(values, axis=0), axis=1)
-    return out
-
-
 def refit_rectangle(window_votes: np.ndarray, object_votes: np.ndarray, col_lines, row_lines,
                     prefer: np.ndarray | None = None) -> tuple[tuple[int, int, int, int] | None, float]:
     """The rectangle (r0, r1, c0, c1) over candidate grid lines minimising :func:`weighted_window_uncertainty`,
@@ -502,7 +496,7 @@ def refit_rectangle(window_votes: np.ndarray, object_votes: np.ndarray, col_line
     if prefer is None:
         best = np.unravel_index(int(np.argmin(err)), err.shape)
     else:  # among the tied minima, the candidate closest to the preferred extent, then the smallest
-        share = box_sums(_float_integral(2.0 * np.asarray(prefer, dtype=np.float64) - 1.0), R0, R1, C0, C1)
+        share = box_sums(integral_image(2.0 * np.asarray(prefer, dtype=np.float64) - 1.0, np.float64), R0, R1, C0, C1)
         tied = np.flatnonzero(err.ravel() == err.min())
         area = ((R1 - R0) * (C1 - C0)).ravel()[tied]
         order = np.lexsort((area, -np.round(share.ravel()[tied], 9)))

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import dataclasses
+import functools
 import math
 import os
 import weakref
@@ -70,8 +71,8 @@ class PredictParams:
     window_weight ("tent"): how the windows that saw a point are averaged: "tent" weighs each by how central the
         point lies in it ((1 - |dx|/half)(1 - |dy|/half)), "uniform" equally.
     threads (0): torch CPU threads; 0 = one per core.
-    keep_memory (True): while ``predict`` runs (features, network, filter), freed memory stays with the process (glibc: no separate mapping
-        for large blocks, no trimming; restored and trimmed afterwards; :func:`kept_memory`), so the network's
+    keep_memory (True): while ``predict`` runs (features, network, filter), freed memory stays with the process
+        (glibc: no separate mapping for large blocks, no trimming; restored and trimmed afterwards; :func:`kept_memory`), so the network's
         large temporaries (64-128 MB per batch of 32 windows) are not page-faulted in afresh at every layer. Same
         output; measured on the held-out parts in docs/segmentation.md ("Memory").
         No effect where the C library has no ``mallopt`` (macOS, Windows).
@@ -164,6 +165,7 @@ M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4
 DEFAULT_TRIM_THRESHOLD, DEFAULT_MMAP_MAX = 128 * 1024, 65536
 
 
+@functools.cache
 def _libc() -> object | None:
     """The C library when it has glibc's ``mallopt`` and ``malloc_trim`` (None elsewhere)."""
     try:
