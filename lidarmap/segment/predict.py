@@ -72,10 +72,10 @@ class PredictParams:
         point lies in it ((1 - |dx|/half)(1 - |dy|/half)), "uniform" equally.
     threads (0): torch CPU threads; 0 = one per core.
     keep_memory (True): while ``predict`` runs (features, network, filter), freed memory stays with the process
-        (glibc: no separate mapping for large blocks, no trimming; restored and trimmed afterwards; :func:`kept_memory`), so the network's
-        large temporaries (64-128 MB per batch of 32 windows) are not page-faulted in afresh at every layer. Same
-        output; measured on the held-out parts in docs/segmentation.md ("Memory").
-        No effect where the C library has no ``mallopt`` (macOS, Windows).
+        (glibc: no separate mapping for large blocks, no trimming; restored and trimmed afterwards;
+        :func:`kept_memory`), so the network's large temporaries (64-128 MB per batch of 32 windows) are not
+        page-faulted in afresh at every layer. Same output; measured on the held-out parts in docs/segmentation.md
+        ("Memory"). No effect where the C library has no ``mallopt`` (macOS, Windows).
     device ("auto"): "cpu", "cuda" or "auto" (a GPU when there is one).
     vegetation (True): after the model, points it calls building that look like vegetation get probability 0
         (:func:`lidarmap.segment.vegetation.vegetation_filter`): at least ``vegetation_share`` of the points within
