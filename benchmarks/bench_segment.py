@@ -22,11 +22,10 @@ PointNet++ (the shipped model) against the named baseline, the geometric-feature
 * throughput: input points per second of ``predict`` (features, windows with their overlap, network, vegetation
   filter), 2 threads, after one untimed warm-up prediction per model (once-per-process costs).
 
-PointNet++ is scored, from one network output, with today's defaults (the vegetation filter keeping low last
-returns, ``[segment] vegetation_keep_below``, reusing the network's features, ``keep_memory``), with the defaults
-of 2026-11-26 round 2 (**named baseline** ``pointnet2 (round-2 default)``: the filter without ``keep_below``,
-computing its own scattering, memory handled by glibc's defaults; timed on a second network run of its own; the
-network's output is the same) and without the filter (the first run's network seconds).
+PointNet++ is scored with today's defaults, with the kernels of 2026-11-26 round 3 (**named baseline**
+``pointnet2 (round-3 kernels)``: the same parameters and filter, but the point features' 3x3 eigen problems solved
+by numpy's batched ``eigh`` instead of the closed form, and farthest point sampling in torch's loop instead of
+numpy's; timed on a second network run of its own) and without the filter (the first run's network seconds).
 
 Targets: held-out OA >= 0.97 and building IoU >= 0.92; tree-like FP <= 0.03 per held-out part and of the simulated
 true vegetation; wall recall >= 0.90; >= 50,000 points/s.
@@ -35,11 +34,14 @@ true vegetation; wall recall >= 0.90; >= 50,000 points/s.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import functools
 import os
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
@@ -49,6 +51,8 @@ os.environ.setdefault("MKL_NUM_THREADS", "2")
 import numpy as np  # noqa: E402
 
 from lidarmap.io.las import read_las  # noqa: E402
+from lidarmap.segment import features as features_module  # noqa: E402
+from lidarmap.segment import pointnet2 as pointnet2_module  # noqa: E402
 from lidarmap.segment import recipe  # noqa: E402
 from lidarmap.segment.baseline import load_baseline  # noqa: E402
 from lidarmap.segment.blocks import hide_labels  # noqa: E402
@@ -60,6 +64,7 @@ from lidarmap.segment.metrics import (  # noqa: E402
     tree_scores,
 )
 from lidarmap.segment.modelfile import SegmentModel, load_model  # noqa: E402
+from lidarmap.segment.neighbors import farthest_point_sampling  # noqa: E402
 from lidarmap.segment.predict import (  # noqa: E402
     PredictParams,
     apply_classes,
@@ -75,10 +80,9 @@ THREADS = 2
 TARGETS = {"oa": 0.97, "iou": 0.92, "tree_fp": 0.03, "wall_recall": 0.90, "throughput": 50_000}
 #: The PointNet++ output scored without the vegetation filter (same network output, filter not applied).
 UNFILTERED = "pointnet2 (no vegetation filter)"
-#: The shipped default before this round (round 2 of issue 14): the same network output, the filter without
-#: ``vegetation_keep_below`` and computing its own scattering.
-ROUND2 = "pointnet2 (round-2 default)"
-ROUND2_PARAMS = {"vegetation_keep_below": 0.0, "keep_memory": False}
+#: The shipped code before this round (round 3 of issue 14): the same parameters and filter; the eigen problems of
+#: the point features by batched ``eigh``, farthest point sampling in torch (:func:`round3_kernels`).
+ROUND3 = "pointnet2 (round-3 kernels)"
 WALL_KINDS = ("wall", "window_reveal", "window_interior", "door", "structure")
 
 
@@ -88,7 +92,7 @@ def clocks() -> np.ndarray:
 
 
 def timed_predict(cloud, model, params: PredictParams) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """Probabilities of each scored variant of ``model`` (PointNet++: today's default, the round-2 default and no
+    """Probabilities of each scored variant of ``model`` (PointNet++: today's default, the round-3 kernels and no
     filter, from one network run) and the (wall, CPU) seconds of each: the model's plus its own filter's."""
     with kept_memory(params.keep_memory):  # as predict() does
         started = clocks()
@@ -99,13 +103,25 @@ def timed_predict(cloud, model, params: PredictParams) -> tuple[dict[str, np.nda
         filtered = model_seconds + clocks() - started
         if not isinstance(model, SegmentModel):
             return {"baseline": prob}, {"baseline": filtered}
-    # the round-2 default timed on its own path (a second network run: its memory handling and its filter)
-    round2 = dataclasses.replace(params, **ROUND2_PARAMS)
+    # the round-3 kernels timed on their own path (a second network run)
     started = clocks()
-    raw2, _ = model_probability(cloud, model, dataclasses.replace(round2, vegetation=False))
-    before = without_vegetation(cloud, raw2, round2)
-    seconds = {"pointnet2": filtered, ROUND2: clocks() - started, UNFILTERED: model_seconds}
-    return {"pointnet2": prob, ROUND2: before, UNFILTERED: raw}, seconds
+    with round3_kernels(), kept_memory(params.keep_memory):
+        raw3, features3 = model_probability(cloud, model, dataclasses.replace(params, vegetation=False))
+        before = without_vegetation(cloud, raw3, params, features=features3)
+    seconds = {"pointnet2": filtered, ROUND3: clocks() - started, UNFILTERED: model_seconds}
+    return {"pointnet2": prob, ROUND3: before, UNFILTERED: raw}, seconds
+
+
+@contextlib.contextmanager
+def round3_kernels() -> Iterator[None]:
+    """Run the named baseline's kernels: batched ``eigh`` for the point features, the torch sampling loop."""
+    saved = features_module.covariance_eigen, pointnet2_module.farthest_point_sampling
+    features_module.covariance_eigen = features_module.covariance_eigen_eigh
+    pointnet2_module.farthest_point_sampling = functools.partial(farthest_point_sampling, backend="torch")
+    try:
+        yield
+    finally:
+        features_module.covariance_eigen, pointnet2_module.farthest_point_sampling = saved
 
 
 def warm_up(models: dict, cloud, params: PredictParams, points: int = 20_000) -> None:
@@ -302,7 +318,7 @@ def main() -> None:
           f"(`{Path(models['baseline'].source).name}`). Both trained by `scripts/train_segmentation.py` on the same "
           f"recipe. {THREADS} torch/BLAS threads; machine load average {load_before:.1f} before, {load_after:.1f} after "
           f"(shared 2-core machine: timings are noisy, compare the two methods).\n")
-    variants = ["pointnet2", ROUND2, UNFILTERED, "baseline"]
+    variants = ["pointnet2", ROUND3, UNFILTERED, "baseline"]
     print_held_out(real, info, variants)
     print_simulated(sim, args.sim_seed, variants)
     print_class5(real, info, sim, args.sim_seed)
@@ -312,8 +328,8 @@ def main() -> None:
           "vegetation filter, or features + classifier + filter), over the held-out parts and the simulated city; "
           "wall seconds, and CPU seconds of the process (all threads): less disturbed by other jobs than wall "
           "time, so fit to compare the variants of one run; CPU s / 2 is not a quiet-machine time (parts of the "
-          "path run on one thread, and under contention waiting OpenMP threads spin and count). The round-2 default "
-          "is timed on a network run of its own; no filter = the network's seconds of today's run.\n")
+          "path run on one thread, and under contention waiting OpenMP threads spin and count). The round-3 "
+          "kernels are timed on a network run of their own; no filter = the network's seconds of today's run.\n")
     print("| method | held-out points | wall s | points/s | CPU s | points/s at CPU s / 2 | simulated points | wall s "
           "| points/s |")
     print("|---|---|---|---|---|---|---|---|---|")

@@ -30,7 +30,13 @@ from lidarmap.segment.blocks import (
     hide_labels,
     window_centres,
 )
-from lidarmap.segment.features import FeatureSpec, ModelSpecError, point_features
+from lidarmap.segment.features import (
+    FeatureSpec,
+    ModelSpecError,
+    covariance_eigen,
+    neighbourhood_covariance,
+    point_features,
+)
 from lidarmap.segment.metrics import confusion_matrix, evaluate_classes, scores
 from lidarmap.segment.modelfile import load_model, model_to_dict, save_model
 from lidarmap.segment.neighbors import ball_query, farthest_point_sampling, knn
@@ -152,11 +158,26 @@ def test_knn_backends_agree_and_fps_spreads() -> None:
     d_dense, i_dense = knn(query, ref, 8, "dense")
     torch.testing.assert_close(d_tree, d_dense, atol=1e-3, rtol=1e-4)
     assert (i_tree == i_dense).float().mean() > 0.99  # ties aside
-    chosen = farthest_point_sampling(ref, 64)
-    assert all(len(set(c.tolist())) == 64 for c in chosen)
-    picked = torch.gather(ref, 1, chosen[..., None].expand(-1, -1, 3))
-    spacing = torch.cdist(picked, picked) + torch.eye(64) * 1e9
-    assert spacing.min() > 1.5  # random 64 of 700 points in 30 m come far closer
+    for backend in ("torch", "numpy"):
+        chosen = farthest_point_sampling(ref, 64, backend)
+        assert all(len(set(c.tolist())) == 64 for c in chosen)
+        picked = torch.gather(ref, 1, chosen[..., None].expand(-1, -1, 3))
+        spacing = torch.cdist(picked, picked) + torch.eye(64) * 1e9
+        assert spacing.min() > 1.5  # random 64 of 700 points in 30 m come far closer
+        # each pick is the point farthest from the ones before it (up to float32 rounding of the distance)
+        d = torch.cdist(ref, picked)
+        for i in (1, 10, 63):
+            gap = d[:, :, :i].min(-1).values
+            best = gap.max(-1).values
+            got = gap.gather(1, chosen[:, i:i + 1]).squeeze(1)
+            torch.testing.assert_close(got, best, atol=1e-4, rtol=1e-5)
+    same = farthest_point_sampling(ref, 64, "torch") == farthest_point_sampling(ref, 64, "numpy")
+    assert same.float().mean() > 0.95
+    with torch.no_grad():  # prediction: numpy on CPU
+        assert torch.equal(farthest_point_sampling(ref, 64), farthest_point_sampling(ref, 64, "numpy"))
+    assert torch.equal(farthest_point_sampling(ref, 64), farthest_point_sampling(ref, 64, "torch"))  # training
+    with pytest.raises(ValueError, match="unknown sampling backend"):
+        farthest_point_sampling(ref, 8, "gpu")
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -439,3 +460,25 @@ def test_shipped_model_on_a_real_held_out_tile(montpellier_tiles: list[Path]) ->
 
 #: Floors a little under what the shipped model measures on the held-out tile (docs/segmentation.md).
 SHIPPED_FLOOR = {"oa": 0.96, "iou": 0.90}
+
+
+def test_closed_form_eigen_matches_eigh_including_degenerate_neighbourhoods():
+    rng = np.random.default_rng(5)
+    plane = rng.normal(size=(200, 16, 3)) * [3.0, 2.0, 0.01]  # roofs: one tiny eigenvalue, a clear normal
+    tilted = plane @ np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    blob = rng.normal(size=(200, 16, 3))
+    line = np.zeros((50, 16, 3))
+    line[..., 0] = rng.normal(size=(50, 16))  # two zero eigenvalues: no normal in closed form
+    same = np.full((50, 16, 3), 7.0)  # all neighbours one point
+    nb = np.concatenate([plane, tilted, blob, line, same]) + 100.0
+    cov6 = neighbourhood_covariance(nb, nb[:, 0])
+    centred = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.matmul(centred.transpose(0, 2, 1), centred) / 16
+    assert np.allclose(cov6[:, [0, 1, 2, 3, 4, 5]], cov[:, [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]], atol=1e-9)
+    values, vectors = np.linalg.eigh(cov)
+    l1, l2, l3, normal_z = covariance_eigen(cov6)
+    assert np.allclose(np.column_stack([l3, l2, l1]), np.maximum(values, 0.0), atol=1e-9)
+    sure = values[:, 1] - values[:, 0] > 1e-6 * values[:, 2]
+    assert np.allclose(normal_z[sure], np.abs(vectors[sure, 2, 0]), atol=1e-7)
+    assert np.all(np.isfinite(normal_z)) and np.all((normal_z >= 0) & (normal_z <= 1 + 1e-12))
+    assert np.allclose(normal_z[:200], 1.0, atol=1e-3)  # horizontal roof patches: normal straight up

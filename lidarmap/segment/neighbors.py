@@ -20,12 +20,23 @@ from scipy.spatial import cKDTree
 DENSE_CHUNK = 128
 
 
-def farthest_point_sampling(xyz: torch.Tensor, count: int) -> torch.Tensor:
+def farthest_point_sampling(xyz: torch.Tensor, count: int, backend: str = "auto") -> torch.Tensor:
     """Indices (B, count) of ``count`` points per block chosen by iterative farthest point sampling.
 
     Starts at point 0 of every block (blocks are randomly ordered samples, so that is a random start). The loop
     runs ``count`` tiny steps, so each step is a single batched product: |x - c|^2 = |x|^2 - 2 c.x + |c|^2.
+
+    Two loops of the same arithmetic: ``"torch"`` and ``"numpy"`` (CPU only; a third of the CPU time: numpy's calls
+    cost less than torch's dispatch, which dominates steps this small). They round the dot product differently, so
+    about 0.1 % of the picks differ. ``"auto"`` takes numpy on CPU when no gradient is recorded (prediction,
+    validation) and torch otherwise, so that training -- and with it the shipped weights -- stays as it was made.
     """
+    if backend == "auto":
+        backend = "numpy" if xyz.device.type == "cpu" and not torch.is_grad_enabled() else "torch"
+    if backend == "numpy":
+        return torch.from_numpy(_farthest_point_sampling_numpy(xyz.detach().numpy(), count))
+    if backend != "torch":
+        raise ValueError(f"unknown sampling backend {backend!r}")
     # thousands of tiny steps: intra-op threads only add synchronisation, and when another process holds a core
     # OpenMP's spinning makes each step ~50x slower (measured: 0.25 s vs 17 s for 32 x 4096 -> 1024 points)
     threads = torch.get_num_threads()
@@ -52,6 +63,28 @@ def _farthest_point_sampling(xyz: torch.Tensor, count: int) -> torch.Tensor:
         dist += (centre * centre).sum(-1)
         torch.minimum(nearest, dist, out=nearest)
         last = nearest.argmax(dim=1)
+        chosen[:, i] = last
+    return chosen
+
+
+def _farthest_point_sampling_numpy(xyz: np.ndarray, count: int) -> np.ndarray:
+    b, n, _ = xyz.shape
+    count = min(count, n)
+    square = (xyz * xyz).sum(-1)  # (B, N)
+    xyz_t = np.ascontiguousarray(xyz.transpose(0, 2, 1))  # (B, 3, N)
+    chosen = np.zeros((b, count), np.int64)
+    nearest = np.full((b, n), np.inf, xyz.dtype)
+    dist = np.empty((b, 1, n), xyz.dtype)
+    rows = np.arange(b)
+    last = np.zeros(b, np.int64)
+    for i in range(1, count):
+        centre = xyz[rows, last]  # (B, 3)
+        np.matmul(centre[:, None, :], xyz_t, out=dist)
+        dist *= -2.0
+        dist += square[:, None, :]
+        dist += (centre * centre).sum(-1)[:, None, None]
+        np.minimum(nearest, dist[:, 0], out=nearest)
+        last = nearest.argmax(axis=1)
         chosen[:, i] = last
     return chosen
 
