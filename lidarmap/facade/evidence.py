@@ -54,15 +54,34 @@ class CellEvidence:
         return self.wall + self.passed
 
 
-def local_wall_depth(sdt: np.ndarray, s0: float, params: FacadeParams) -> np.ndarray:
+def local_wall_depth(sdt: np.ndarray, s0: float, params: FacadeParams, heads: np.ndarray | None = None) -> np.ndarray:
     """The depth of the wall next to each point: the median depth of the points within ``wall_band`` of the plane
     per ``wall_block`` of s (0 where a block has fewer than 20 of them). A wall that bows or drifts by a few cm
-    (GPS drift along a long façade) must not read as recessed glass."""
-    ev = params.evidence
+    (GPS drift along a long façade) must not read as recessed glass.
+
+    With ``heads`` (the scanner head of each point, :func:`scanner_heads`) the median is taken per head where a
+    block holds at least 20 of that head's points: two crossed heads see a wall point seconds apart, and the GPS
+    drift in between puts their walls a few cm apart; against the median of both, the returns of one head would
+    lie behind the wall and read as pulses through it."""
     sdt = np.asarray(sdt, dtype=np.float64).reshape(-1, 3)
+    both = _block_median(sdt, s0, params, np.ones(len(sdt), dtype=bool))
+    if heads is None:
+        return np.where(np.isnan(both), 0.0, both)
+    out = both
+    for h in np.unique(heads):
+        own = _block_median(sdt, s0, params, heads == h)
+        take = (heads == h) & ~np.isnan(own)
+        out = np.where(take, own, out)
+    return np.where(np.isnan(out), 0.0, out)
+
+
+def _block_median(sdt: np.ndarray, s0: float, params: FacadeParams, members: np.ndarray) -> np.ndarray:
+    """Per point, the median depth of the ``members`` within ``wall_band`` of the plane in its ``wall_block`` of
+    s; NaN where that block holds fewer than 20 of them."""
+    ev = params.evidence
     block = np.floor((sdt[:, 0] - s0) / ev.wall_block).astype(np.int64)
-    near = np.abs(sdt[:, 2]) <= ev.wall_band
-    out = np.zeros(len(sdt))
+    near = members & (np.abs(sdt[:, 2]) <= ev.wall_band)
+    out = np.full(len(sdt), np.nan)
     if not near.any():
         return out
     b_near, d_near = block[near], sdt[near, 2]
@@ -70,9 +89,9 @@ def local_wall_depth(sdt: np.ndarray, s0: float, params: FacadeParams) -> np.nda
     b_sorted, d_sorted = b_near[order], d_near[order]
     uniq, start, count = np.unique(b_sorted, return_index=True, return_counts=True)
     median = 0.5 * (d_sorted[start + (count - 1) // 2] + d_sorted[start + count // 2])
-    median[count < 20] = 0.0
+    median[count < 20] = np.nan
     pos = np.clip(np.searchsorted(uniq, block), 0, len(uniq) - 1)
-    return np.where(uniq[pos] == block, median[pos], 0.0)
+    return np.where(uniq[pos] == block, median[pos], np.nan)
 
 
 def _fill_sensors(sensors: np.ndarray, gps: np.ndarray) -> np.ndarray:
