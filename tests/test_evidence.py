@@ -537,6 +537,13 @@ def test_local_wall_depth_per_scanner_head():
     assert np.abs(d - own).max() < 0.015  # every return lies on its own head's wall
     both = local_wall_depth(sdt, 0.0, params)
     assert np.mean(np.abs(d - both) > params.evidence.pass_depth) > 0.3  # the median of both: a third off the wall
+    # a shop front: more than half of head 0's returns come from glass 5 cm behind its wall (hard seed 58: the
+    # glass was the higher peak of that head's depths, their median 1.7-3.3 cm back, and the glass read as wall)
+    glass = (heads == 0) & (rng.random(400) < 0.6)
+    d2 = np.where(glass, 0.03 - 0.05 + rng.normal(0.0, 0.003, 400), d)
+    assert abs(np.median(d2[heads == 0]) - 0.03) > params.evidence.pass_depth
+    own = local_wall_depth(np.column_stack([s, sdt[:, 1], d2]), 0.0, params, heads)
+    assert np.abs(own[heads == 0] - 0.03).max() < 0.006 and np.abs(own[heads == 1] + 0.03).max() < 0.006
 
 
 def test_crossed_heads_a_few_cm_apart_still_see_wall_and_window():
