@@ -37,6 +37,7 @@ from lidarmap.facade.evidence import (
     missed_pulse_crossings,
     opening_cells,
     recessed_share,
+    scanner_heads,
     vote_weights,
     wall_offset,
 )
@@ -288,6 +289,7 @@ class _Surface:
     dominant: np.ndarray | None = None  # (rows, cols) the layer seen in each cell, -1 none
     observed_raw: np.ndarray | None = None  # cells holding a point
     observed: np.ndarray | None = None  # the same with sampling gaps closed
+    gps: np.ndarray | None = None  # (n,) the points' GPS times (tell crossed scanner heads apart)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -334,7 +336,8 @@ def _surface_layers(camp: CampaignData, frame: FacadeFrame, extent: tuple[float,
     labels = np.full(len(sdt), -1, dtype=np.int64)
     labels[keep] = assign_layers(sdt[keep, 2], layers, params.layers.sigma_k)
     return _Surface(extent=extent, cell=params.layers.cell, sdt=sdt, sensors=camp.sensors[member_ids],
-                    labels=labels, layers=layers, main_idx=main_idx)
+                    labels=labels, layers=layers, main_idx=main_idx,
+                    gps=None if camp.gps is None else camp.gps[member_ids])
 
 
 def _surface_grid(surf: _Surface, params: FacadeParams) -> bool:
@@ -404,9 +407,11 @@ def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens:
     s0, t0 = surf.extent[0], surf.extent[2]
     d = surf.sdt[:, 2]
     inside = (d >= -params.layers.layer_back) & (d <= params.layers.layer_front)  # any layer or none: a leaf too
-    rel = d - local_wall_depth(surf.sdt, s0, params)
-    pass_depth = params.evidence.pass_depth
     sens_sdt = frame.to_facade(surf.sensors)
+    # each scanner head against its own wall: crossed heads see a wall point seconds apart (GPS drift between)
+    heads = None if surf.gps is None else scanner_heads(surf.sdt, sens_sdt, surf.gps)
+    rel = d - local_wall_depth(surf.sdt, s0, params, heads)
+    pass_depth = params.evidence.pass_depth
     on_wall = inside & (np.abs(rel) <= pass_depth)
     recessed = inside & (rel < -pass_depth)
     deep = a_sdt[:, 2] < -params.layers.layer_back
