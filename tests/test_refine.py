@@ -583,3 +583,28 @@ def test_an_unknown_region_the_campaigns_together_see_enclosed_by_wall_becomes_a
         objects, _ = _promote_enclosed([], [u], votes_for(cells, fringe, patchy), _Ids([u]), FacadeParams(),
                                        RefineParams(enclosed_wall_share=share), campaign_id=2)
         assert len(objects) == (1 if promoted else 0)
+
+
+def test_a_stored_window_too_wide_is_judged_on_the_opening_not_on_the_wall_strips_it_holds():
+    """Issue 18 round 5 (dev seed 65 b1 f0, a glazed window between open shutters): campaign 1 stored the window
+    0.5 m too wide, over the shutter strips beside it; campaign 2 saw the strips as wall/objects again and the glass
+    as nothing (no votes either way). Summed over the stored rectangle the strips' wall weight (2 per cell)
+    outweighed the window's (1 per cell) and the window was dropped; judged on the rectangle the votes support it
+    stays, shed of the strips. Wall seen over the opening itself (2 per cell) still drops it."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    window, stored_box = box(1.0, 1.0, 1.6, 3.0), box(0.8, 1.0, 1.9, 3.0)
+    cells = grid.raster(window)
+    strips = grid.raster(stored_box) & ~cells
+    stored = [Element(3, ElementKind.WINDOW, stored_box, None, 0.1, campaigns=[1])]
+    extent = (0.0, 4.0, 0.0, 4.0)
+    for wall_over_window, kept in ((0, True), (2, False)):
+        objects = 2 * (~cells).astype(int) + wall_over_window * cells
+        assert objects[strips].sum() > cells.sum()  # the old rule's sum over the stored rectangle: outweighed
+        votes = _Votes(grid, cells.astype(int), objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
+                       np.ones(grid.shape, bool), window_new=np.zeros(grid.shape, int))
+        fused, _ = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), extent, [], 0.45)
+        assert [e.element_id for e in fused] == ([3] if kept else []), wall_over_window
+        if kept:
+            assert polygon_iou(fused[0].polygon, window) >= 0.9, fused[0].polygon.bounds
