@@ -608,3 +608,25 @@ def test_a_stored_window_too_wide_is_judged_on_the_opening_not_on_the_wall_strip
         assert [e.element_id for e in fused] == ([3] if kept else []), wall_over_window
         if kept:
             assert polygon_iou(fused[0].polygon, window) >= 0.9, fused[0].polygon.bounds
+
+
+def test_a_stored_door_one_later_campaign_reads_as_wall_with_no_more_weight_stays():
+    """Issue 18 round 5 (dev seed 68 b3 f0, a flush door): campaign 1 found the door (weight 1 per cell; its
+    rectangle one cell wider than its window votes, where it saw the frame as wall); campaign 2 read the leaf as
+    wall with the same weight and found nothing. Over the stored rectangle the frame's wall votes tipped the sum
+    and the door was dropped; over its support (the cells seen as opening) the votes tie and it stays, unchanged.
+    A campaign seeing wall there with twice the weight still drops it."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    leaf, stored_box = box(1.0, 0.5, 2.0, 2.6), box(0.9, 0.4, 2.1, 2.7)
+    cells = grid.raster(leaf)
+    stored = [Element(3, ElementKind.DOOR, stored_box, None, 0.3, campaigns=[1])]
+    for wall_weight, kept in ((1, True), (2, False)):
+        objects = (~cells).astype(int) + wall_weight * grid.raster(stored_box)
+        votes = _Votes(grid, cells.astype(int), objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
+                       np.ones(grid.shape, bool), window_new=np.zeros(grid.shape, int))
+        fused, _ = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), (0.0, 4.0, 0.0, 4.0), [], 0.45)
+        assert [(e.element_id, e.kind) for e in fused] == ([(3, ElementKind.DOOR)] if kept else []), wall_weight
+        if kept:
+            assert fused[0].polygon.equals_exact(stored_box, 1e-9), fused[0].polygon.bounds

@@ -767,23 +767,24 @@ def _refit_stored(e: Element, votes: _Votes, params: RefineParams) -> tuple[Poly
 
 
 def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size: float = 0.0) -> Element | None:
-    """A stored window/door the new campaign saw but did not find: its sides refitted on the fused votes
-    (:func:`_refit_stored`), ``None`` when the wall evidence (all campaigns so far) over the refitted rectangle --
-    the stored one when no window weight is left around it -- outweighs its opening evidence
-    (:func:`outweighed_by_wall`); otherwise kept with the refitted sides and its ε recomputed there. A large ε
-    alone does not drop it: a door leaf one campaign reads as wall scan line by scan line leaves a striped vote map
-    whose ε is high while the opening evidence still outweighs the wall's. ``None`` too when the refit leaves a side shorter than
-    ``min_size`` (a sliver is no opening)."""
+    """A stored window/door the new campaign saw but did not find: ``None`` when the wall evidence (all campaigns so
+    far) outweighs its opening evidence (:func:`outweighed_by_wall`) over its support -- the cells of it some
+    campaign saw as opening (all of it when none did); otherwise kept, its sides refitted on the fused votes
+    (:func:`_refit_stored`) and its ε recomputed there. A tie keeps it. A large ε alone does not drop it: a door
+    leaf one campaign reads as wall scan line by scan line leaves a striped vote map whose ε is high while the
+    opening evidence still outweighs the wall's. ``None`` too when the refit leaves a side shorter than ``min_size``
+    (a sliver is no opening)."""
     g = votes.grid
     cells = g.raster(e.polygon)
     if not cells.any() or votes.seen_new[cells].astype(bool).mean() < params.seen_fraction:
         return e
-    refit = _refit_stored(e, votes, params)
-    # existence is judged on the opening the votes support: a stored rectangle too wide holds wall strips (a
-    # shutter, a reveal) whose wall votes every later campaign adds to, and would be outweighed by them alone
-    judged = cells if refit is None else g.raster(refit[0])
-    if outweighed_by_wall(votes.window, votes.objects, judged if judged.any() else cells):
+    # existence is judged on the opening's support, the cells some campaign saw as opening: wall strips a stored
+    # rectangle too wide holds (a shutter, a reveal, the frame) say its sides are off, not that it is not there --
+    # every later campaign adds wall votes to them, and they alone used to outweigh a well-observed opening
+    support = cells & (votes.window > 0)
+    if outweighed_by_wall(votes.window, votes.objects, support if support.any() else cells):
         return None
+    refit = _refit_stored(e, votes, params)
     if refit is None:
         return e
     poly, eps = refit
