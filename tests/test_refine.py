@@ -630,3 +630,24 @@ def test_a_stored_door_one_later_campaign_reads_as_wall_with_no_more_weight_stay
         assert [(e.element_id, e.kind) for e in fused] == ([(3, ElementKind.DOOR)] if kept else []), wall_weight
         if kept:
             assert fused[0].polygon.equals_exact(stored_box, 1e-9), fused[0].polygon.bounds
+
+
+def test_a_stored_door_is_not_refitted_to_the_strip_a_later_campaign_missed():
+    """Issue 18 round 5 (dev seed 69 b5 f0, a flush door): two campaigns found the door (weight 2 per cell); a
+    third read its leaf as wall (weight 3) except a 0.3 m strip by the frame and a few scan lines. The opening
+    evidence still outweighs the wall's, but the refit on the fused votes is the 0.3 m strip, below
+    min_opening_size: the door used to be dropped as a sliver; it now keeps its stored rectangle."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    door = box(1.0, 0.2, 2.0, 2.4)
+    cells = grid.raster(door)
+    read_as_wall = cells & (np.arange(40) >= 13)[None, :] & (np.arange(40) % 4 != 0)[:, None]
+    objects = 2 * (~cells).astype(int) + 3 * read_as_wall
+    assert objects[cells].sum() < 2 * cells.sum()  # not outweighed
+    votes = _Votes(grid, 2 * cells.astype(int), objects, np.full(grid.shape, 3), np.ones(grid.shape, int),
+                   np.ones(grid.shape, bool), window_new=np.zeros(grid.shape, int))
+    stored = [Element(3, ElementKind.DOOR, door, None, 0.03, campaigns=[1, 2])]
+    fused, _ = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), (0.0, 4.0, 0.0, 4.0), [], 0.45)
+    assert [(e.element_id, e.kind) for e in fused] == [(3, ElementKind.DOOR)]
+    assert fused[0].polygon.equals_exact(door, 1e-9), fused[0].polygon.bounds

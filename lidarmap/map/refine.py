@@ -772,8 +772,8 @@ def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size:
     campaign saw as opening (all of it when none did); otherwise kept, its sides refitted on the fused votes
     (:func:`_refit_stored`) and its ε recomputed there. A tie keeps it. A large ε alone does not drop it: a door
     leaf one campaign reads as wall scan line by scan line leaves a striped vote map whose ε is high while the
-    opening evidence still outweighs the wall's. ``None`` too when the refit leaves a side shorter than ``min_size``
-    (a sliver is no opening)."""
+    opening evidence still outweighs the wall's. A refit that leaves a side shorter than ``min_size`` keeps the stored
+    rectangle: the strip a campaign happened not to read as wall is no better place for the opening."""
     g = votes.grid
     cells = g.raster(e.polygon)
     if not cells.any() or votes.seen_new[cells].astype(bool).mean() < params.seen_fraction:
@@ -790,7 +790,7 @@ def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size:
     poly, eps = refit
     b = poly.bounds
     if min(b[2] - b[0], b[3] - b[1]) < min_size:
-        return None
+        return e  # the votes keep it (above) but cannot place its sides: a strip the new campaign missed is no door
     return dataclasses.replace(e, polygon=poly, uncertainty=eps)
 
 
