@@ -766,31 +766,42 @@ def _refit_stored(e: Element, votes: _Votes, params: RefineParams) -> tuple[Poly
     return box(sides[0], sides[2], sides[1], sides[3]), float(eps)
 
 
+_REFIT_KEEPS = 0.5  # a stored opening's refit must keep this share of its opening evidence, else it stays as stored
+
+
 def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size: float = 0.0) -> Element | None:
     """A stored window/door the new campaign saw but did not find: ``None`` when the wall evidence (all campaigns so
-    far) outweighs its opening evidence (:func:`outweighed_by_wall`) over its support -- the cells of it some
-    campaign saw as opening (all of it when none did); otherwise kept, its sides refitted on the fused votes
-    (:func:`_refit_stored`) and its ε recomputed there. A tie keeps it. A large ε alone does not drop it: a door
-    leaf one campaign reads as wall scan line by scan line leaves a striped vote map whose ε is high while the
-    opening evidence still outweighs the wall's. A refit that leaves a side shorter than ``min_size`` keeps the stored
-    rectangle: the strip a campaign happened not to read as wall is no better place for the opening."""
+    far) over its support -- the cells of it some campaign saw as opening -- is at least its opening evidence
+    there (no support: :func:`outweighed_by_wall` over all of it); otherwise kept, its sides refitted on the fused
+    votes (:func:`_refit_stored`) and its ε recomputed there. A large ε alone does not drop it: a door leaf one
+    campaign reads as wall scan line by scan line leaves a striped vote map whose ε is high while the opening
+    evidence still outweighs the wall's. A refit that keeps less than ``_REFIT_KEEPS`` of the opening evidence or
+    leaves a side shorter than ``min_size`` is not used: the stored rectangle stays."""
     g = votes.grid
     cells = g.raster(e.polygon)
     if not cells.any() or votes.seen_new[cells].astype(bool).mean() < params.seen_fraction:
         return e
     # existence is judged on the opening's support, the cells some campaign saw as opening: wall strips a stored
     # rectangle too wide holds (a shutter, a reveal, the frame) say its sides are off, not that it is not there --
-    # every later campaign adds wall votes to them, and they alone used to outweigh a well-observed opening
+    # every later campaign adds wall votes to them, and they alone used to outweigh a well-observed opening. On
+    # the support a tie is no majority for the opening.
     support = cells & (votes.window > 0)
-    if outweighed_by_wall(votes.window, votes.objects, support if support.any() else cells):
+    if not support.any():
+        return None if outweighed_by_wall(votes.window, votes.objects, cells) else e
+    opening = float(votes.window[support].sum())
+    if float(votes.objects[support].sum()) >= opening:
         return None
     refit = _refit_stored(e, votes, params)
     if refit is None:
         return e
     poly, eps = refit
     b = poly.bounds
-    if min(b[2] - b[0], b[3] - b[1]) < min_size:
-        return e  # the votes keep it (above) but cannot place its sides: a strip the new campaign missed is no door
+    # a refit that keeps less than half of the opening evidence, or leaves a sliver, has not found the opening's
+    # sides but the patch the new campaign happened not to read as wall (a door leaf seen as wall but a strip):
+    # the stored rectangle stays
+    if min(b[2] - b[0], b[3] - b[1]) < min_size or \
+            float(votes.window[support & g.raster(poly)].sum()) < _REFIT_KEEPS * opening:
+        return e
     return dataclasses.replace(e, polygon=poly, uncertainty=eps)
 
 
