@@ -775,8 +775,9 @@ def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size:
     there (no support: :func:`outweighed_by_wall` over all of it); otherwise kept, its sides refitted on the fused
     votes (:func:`_refit_stored`) and its ε recomputed there. A large ε alone does not drop it: a door leaf one
     campaign reads as wall scan line by scan line leaves a striped vote map whose ε is high while the opening
-    evidence still outweighs the wall's. A refit that keeps less than ``_REFIT_KEEPS`` of the opening evidence or
-    leaves a side shorter than ``min_size`` is not used: the stored rectangle stays."""
+    evidence still outweighs the wall's. A refit that keeps less than ``_REFIT_KEEPS`` of the opening evidence is
+    not used: the stored rectangle stays; ``None`` when a refit keeping more leaves a side shorter than ``min_size``
+    (a sliver is no opening)."""
     g = votes.grid
     cells = g.raster(e.polygon)
     if not cells.any() or votes.seen_new[cells].astype(bool).mean() < params.seen_fraction:
@@ -796,12 +797,13 @@ def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size:
         return e
     poly, eps = refit
     b = poly.bounds
-    # a refit that keeps less than half of the opening evidence, or leaves a sliver, has not found the opening's
-    # sides but the patch the new campaign happened not to read as wall (a door leaf seen as wall but a strip):
-    # the stored rectangle stays
-    if min(b[2] - b[0], b[3] - b[1]) < min_size or \
-            float(votes.window[support & g.raster(poly)].sum()) < _REFIT_KEEPS * opening:
+    # a refit that keeps less than half of the opening evidence has not found the opening's sides but the patch
+    # the new campaign happened not to read as wall (a door leaf seen as wall but a strip): the stored rectangle
+    # stays; one that keeps most of it and is a sliver is no opening
+    if float(votes.window[support & g.raster(poly)].sum()) < _REFIT_KEEPS * opening:
         return e
+    if min(b[2] - b[0], b[3] - b[1]) < min_size:
+        return None
     return dataclasses.replace(e, polygon=poly, uncertainty=eps)
 
 
