@@ -583,3 +583,73 @@ def test_an_unknown_region_the_campaigns_together_see_enclosed_by_wall_becomes_a
         objects, _ = _promote_enclosed([], [u], votes_for(cells, fringe, patchy), _Ids([u]), FacadeParams(),
                                        RefineParams(enclosed_wall_share=share), campaign_id=2)
         assert len(objects) == (1 if promoted else 0)
+
+
+def test_a_stored_window_too_wide_is_judged_on_the_opening_not_on_the_wall_strips_it_holds():
+    """Issue 18 round 5 (dev seed 65 b1 f0, a glazed window between open shutters): campaign 1 stored the window
+    0.5 m too wide, over the shutter strips beside it; campaign 2 saw the strips as wall/objects again and the glass
+    as nothing (no votes either way). Summed over the stored rectangle the strips' wall weight (2 per cell)
+    outweighed the window's (1 per cell) and the window was dropped; judged on the rectangle the votes support it
+    stays, shed of the strips. Wall seen over the opening itself (2 per cell) still drops it."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    window, stored_box = box(1.0, 1.0, 1.6, 3.0), box(0.8, 1.0, 1.9, 3.0)
+    cells = grid.raster(window)
+    strips = grid.raster(stored_box) & ~cells
+    stored = [Element(3, ElementKind.WINDOW, stored_box, None, 0.1, campaigns=[1])]
+    extent = (0.0, 4.0, 0.0, 4.0)
+    for wall_over_window, kept in ((0, True), (2, False)):
+        objects = 2 * (~cells).astype(int) + wall_over_window * cells
+        assert objects[strips].sum() > cells.sum()  # the old rule's sum over the stored rectangle: outweighed
+        votes = _Votes(grid, cells.astype(int), objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
+                       np.ones(grid.shape, bool), window_new=np.zeros(grid.shape, int))
+        fused, _ = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), extent, [], 0.45)
+        assert [e.element_id for e in fused] == ([3] if kept else []), wall_over_window
+        if kept:
+            assert polygon_iou(fused[0].polygon, window) >= 0.9, fused[0].polygon.bounds
+
+
+def test_a_stored_door_one_later_campaign_reads_as_wall_with_no_more_weight_stays():
+    """Issue 18 round 5 (dev seed 68 b3 f0, a flush door): campaign 1 found the door (weight 1 per cell; its
+    rectangle one cell wider than its window votes, where it saw the frame as wall); campaign 2 read the leaf as
+    wall with the same weight on 7 scan lines of 8 and found nothing. Over the stored rectangle the frame's wall
+    votes tipped the sum and the door was dropped; over its support (the cells seen as opening) the opening
+    evidence is larger and it stays, unchanged (the refit, on the few lines left, would keep too little of it).
+    A campaign seeing wall there with twice the weight, or with the same weight on every scan line, drops it."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    leaf, stored_box = box(1.0, 0.5, 2.0, 2.6), box(0.9, 0.4, 2.1, 2.7)
+    cells = grid.raster(leaf)
+    stored = [Element(3, ElementKind.DOOR, stored_box, None, 0.3, campaigns=[1])]
+    missed_lines = (np.arange(40) % 8 == 0)[:, None]  # campaign 2 saw the leaf as wall on 7 scan lines of 8
+    for wall, kept in ((cells & ~missed_lines, True), (cells, False), (2 * cells, False)):
+        objects = (~cells).astype(int) + wall.astype(int) + (grid.raster(stored_box) & ~cells)
+        votes = _Votes(grid, cells.astype(int), objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
+                       np.ones(grid.shape, bool), window_new=np.zeros(grid.shape, int))
+        fused, _ = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), (0.0, 4.0, 0.0, 4.0), [], 0.45)
+        assert [(e.element_id, e.kind) for e in fused] == ([(3, ElementKind.DOOR)] if kept else []), wall.max()
+        if kept:
+            assert fused[0].polygon.equals_exact(stored_box, 1e-9), fused[0].polygon.bounds
+
+
+def test_a_stored_door_is_not_refitted_to_the_strip_a_later_campaign_missed():
+    """Issue 18 round 5 (dev seed 69 b5 f0, a flush door): two campaigns found the door (weight 2 per cell); a
+    third read its leaf as wall (weight 3) except a 0.3 m strip by the frame and a few scan lines. The opening
+    evidence still outweighs the wall's, but the refit on the fused votes is the 0.3 m strip, below
+    min_opening_size: the door used to be dropped as a sliver; it now keeps its stored rectangle."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    door = box(1.0, 0.2, 2.0, 2.4)
+    cells = grid.raster(door)
+    read_as_wall = cells & (np.arange(40) >= 13)[None, :] & (np.arange(40) % 4 != 0)[:, None]
+    objects = 2 * (~cells).astype(int) + 3 * read_as_wall
+    assert objects[cells].sum() < 2 * cells.sum()  # not outweighed
+    votes = _Votes(grid, 2 * cells.astype(int), objects, np.full(grid.shape, 3), np.ones(grid.shape, int),
+                   np.ones(grid.shape, bool), window_new=np.zeros(grid.shape, int))
+    stored = [Element(3, ElementKind.DOOR, door, None, 0.03, campaigns=[1, 2])]
+    fused, _ = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), (0.0, 4.0, 0.0, 4.0), [], 0.45)
+    assert [(e.element_id, e.kind) for e in fused] == [(3, ElementKind.DOOR)]
+    assert fused[0].polygon.equals_exact(door, 1e-9), fused[0].polygon.bounds

@@ -766,24 +766,42 @@ def _refit_stored(e: Element, votes: _Votes, params: RefineParams) -> tuple[Poly
     return box(sides[0], sides[2], sides[1], sides[3]), float(eps)
 
 
+_REFIT_KEEPS = 0.5  # a stored opening's refit must keep this share of its opening evidence, else it stays as stored
+
+
 def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size: float = 0.0) -> Element | None:
-    """A stored window/door the new campaign saw but did not find: ``None`` when the wall evidence over it (all
-    campaigns so far) outweighs its opening evidence (:func:`outweighed_by_wall`); otherwise kept, its sides
-    refitted on the fused votes (:func:`_refit_stored`) and its ε recomputed there. A large ε alone does not drop
-    it: a door leaf one campaign reads as wall scan line by scan line leaves a striped vote map whose ε is high
-    while the opening evidence still outweighs the wall's. ``None`` too when the refit leaves a side shorter than
-    ``min_size`` (a sliver is no opening)."""
+    """A stored window/door the new campaign saw but did not find: ``None`` when the wall evidence (all campaigns so
+    far) over its support -- the cells of it some campaign saw as opening -- is at least its opening evidence
+    there (no support: :func:`outweighed_by_wall` over all of it); otherwise kept, its sides refitted on the fused
+    votes (:func:`_refit_stored`) and its ε recomputed there. A large ε alone does not drop it: a door leaf one
+    campaign reads as wall scan line by scan line leaves a striped vote map whose ε is high while the opening
+    evidence still outweighs the wall's. A refit that keeps less than ``_REFIT_KEEPS`` of the opening evidence is
+    not used: the stored rectangle stays; ``None`` when a refit keeping more leaves a side shorter than ``min_size``
+    (a sliver is no opening)."""
     g = votes.grid
     cells = g.raster(e.polygon)
     if not cells.any() or votes.seen_new[cells].astype(bool).mean() < params.seen_fraction:
         return e
-    if outweighed_by_wall(votes.window, votes.objects, cells):
+    # existence is judged on the opening's support, the cells some campaign saw as opening: wall strips a stored
+    # rectangle too wide holds (a shutter, a reveal, the frame) say its sides are off, not that it is not there --
+    # every later campaign adds wall votes to them, and they alone used to outweigh a well-observed opening. On
+    # the support a tie is no majority for the opening.
+    support = cells & (votes.window > 0)
+    if not support.any():
+        return None if outweighed_by_wall(votes.window, votes.objects, cells) else e
+    opening = float(votes.window[support].sum())
+    if float(votes.objects[support].sum()) >= opening:
         return None
     refit = _refit_stored(e, votes, params)
     if refit is None:
         return e
     poly, eps = refit
     b = poly.bounds
+    # a refit that keeps less than half of the opening evidence has not found the opening's sides but the patch
+    # the new campaign happened not to read as wall (a door leaf seen as wall but a strip): the stored rectangle
+    # stays; one that keeps most of it and is a sliver is no opening
+    if float(votes.window[support & g.raster(poly)].sum()) < _REFIT_KEEPS * opening:
+        return e
     if min(b[2] - b[0], b[3] - b[1]) < min_size:
         return None
     return dataclasses.replace(e, polygon=poly, uncertainty=eps)
