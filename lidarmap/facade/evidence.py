@@ -79,20 +79,35 @@ def local_wall_depth(sdt: np.ndarray, s0: float, params: FacadeParams, heads: np
 def _block_median(sdt: np.ndarray, s0: float, params: FacadeParams, members: np.ndarray) -> np.ndarray:
     """Per point, the median depth of the ``members`` within ``wall_band`` of the plane in its ``wall_block`` of
     s; NaN where that block holds fewer than 20 of them."""
+    block, near = _wall_blocks(sdt, s0, params, members)
+    if not near.any():
+        return np.full(len(sdt), np.nan)
+    uniq, median, count = _group_median(block[near], sdt[near, 2])
+    median[count < 20] = np.nan
+    return _per_point(uniq, median, block)
+
+
+def _wall_blocks(sdt: np.ndarray, s0: float, params: FacadeParams, members: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The ``wall_block`` index along s of every point, and which ``members`` lie within ``wall_band`` of the
+    plane."""
     ev = params.evidence
     block = np.floor((sdt[:, 0] - s0) / ev.wall_block).astype(np.int64)
-    near = members & (np.abs(sdt[:, 2]) <= ev.wall_band)
-    out = np.full(len(sdt), np.nan)
-    if not near.any():
-        return out
-    b_near, d_near = block[near], sdt[near, 2]
-    order = np.lexsort((d_near, b_near))
-    b_sorted, d_sorted = b_near[order], d_near[order]
-    uniq, start, count = np.unique(b_sorted, return_index=True, return_counts=True)
-    median = 0.5 * (d_sorted[start + (count - 1) // 2] + d_sorted[start + count // 2])
-    median[count < 20] = np.nan
+    return block, members & (np.abs(sdt[:, 2]) <= ev.wall_band)
+
+
+def _group_median(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The distinct ``keys`` (sorted), the median of the ``values`` of each, and their counts."""
+    order = np.lexsort((values, keys))
+    k_sorted, v_sorted = keys[order], values[order]
+    uniq, start, count = np.unique(k_sorted, return_index=True, return_counts=True)
+    return uniq, 0.5 * (v_sorted[start + (count - 1) // 2] + v_sorted[start + count // 2]), count
+
+
+def _per_point(uniq: np.ndarray, values: np.ndarray, block: np.ndarray) -> np.ndarray:
+    """``values`` (one per block of ``uniq``) at every point's ``block``; NaN for blocks not in ``uniq``."""
     pos = np.clip(np.searchsorted(uniq, block), 0, len(uniq) - 1)
-    return np.where(uniq[pos] == block, median[pos], np.nan)
+    return np.where(uniq[pos] == block, values[pos], np.nan)
 
 
 _MODE_BIN = 0.005  # depth histogram bin of :func:`_block_mode` (m); smoothed over 5 bins (2.5 cm, about the noise)
@@ -103,11 +118,9 @@ def _block_mode(sdt: np.ndarray, s0: float, params: FacadeParams, members: np.nd
     the front-most peak of their smoothed depth histogram that reaches half its maximum, refined to the median of
     those within ``pass_depth`` of it; NaN where that block holds fewer than 20 of them."""
     ev = params.evidence
-    block = np.floor((sdt[:, 0] - s0) / ev.wall_block).astype(np.int64)
-    near = members & (np.abs(sdt[:, 2]) <= ev.wall_band)
-    out = np.full(len(sdt), np.nan)
+    block, near = _wall_blocks(sdt, s0, params, members)
     if not near.any():
-        return out
+        return np.full(len(sdt), np.nan)
     uniq, b_idx = np.unique(block[near], return_inverse=True)
     d_near = sdt[near, 2]
     n_bins = int(np.ceil(2 * ev.wall_band / _MODE_BIN)) + 1
@@ -124,13 +137,10 @@ def _block_mode(sdt: np.ndarray, s0: float, params: FacadeParams, members: np.nd
     close = np.abs(d_near - peak[b_idx]) <= ev.pass_depth
     mode = peak.copy()
     if close.any():
-        order = np.lexsort((d_near[close], b_idx[close]))
-        bc, dc = b_idx[close][order], d_near[close][order]
-        u2, start, count = np.unique(bc, return_index=True, return_counts=True)
-        mode[u2] = 0.5 * (dc[start + (count - 1) // 2] + dc[start + count // 2])
+        groups, median, _ = _group_median(b_idx[close], d_near[close])
+        mode[groups] = median
     mode[np.bincount(b_idx, minlength=len(uniq)) < 20] = np.nan
-    pos = np.clip(np.searchsorted(uniq, block), 0, len(uniq) - 1)
-    return np.where(uniq[pos] == block, mode[pos], np.nan)
+    return _per_point(uniq, mode, block)
 
 
 def _fill_sensors(sensors: np.ndarray, gps: np.ndarray) -> np.ndarray:
