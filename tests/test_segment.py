@@ -482,3 +482,16 @@ def test_closed_form_eigen_matches_eigh_including_degenerate_neighbourhoods():
     assert np.allclose(normal_z[sure], np.abs(vectors[sure, 2, 0]), atol=1e-7)
     assert np.all(np.isfinite(normal_z)) and np.all((normal_z >= 0) & (normal_z <= 1 + 1e-12))
     assert np.allclose(normal_z[:200], 1.0, atol=1e-3)  # horizontal roof patches: normal straight up
+
+
+def test_spatial_split_holds_whole_cells_out_and_nothing_at_fraction_zero():
+    from lidarmap.segment.blocks import spatial_split
+
+    xy = np.random.default_rng(2).uniform(0, 100, size=(5000, 2))
+    val = spatial_split(xy, 32.0, 0.3, np.random.default_rng(0))
+    cells = np.floor((xy - xy.min(axis=0)) / 32.0).astype(int)
+    keys = cells[:, 0] * 1000 + cells[:, 1]
+    assert 0 < val.sum() < len(xy)
+    assert all(len(set(val[keys == k])) == 1 for k in np.unique(keys))  # whole squares on one side
+    assert 1 <= len(np.unique(keys[val])) <= len(np.unique(keys)) - 1
+    assert not spatial_split(xy, 32.0, 0.0, np.random.default_rng(0)).any()  # 0: train on everything

@@ -111,12 +111,13 @@ def spatial_split(xy: np.ndarray, cell: float, val_fraction: float,
     """Boolean mask of validation points: whole ``cell`` x ``cell`` squares drawn at random (seeded).
 
     Neighbouring points fall on the same side, so validation measures generalisation to unseen places rather than
-    to unseen points of seen buildings. At least one cell goes to each side when there are two or more cells.
+    to unseen points of seen buildings. At least one cell goes to each side when there are two or more cells and
+    ``val_fraction`` is above 0; ``val_fraction = 0`` holds nothing out (training on all of the data).
     """
     ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64)
     keys, inverse = np.unique(ij[:, 0] * 1_000_003 + ij[:, 1], return_inverse=True)
     n_val = int(round(len(keys) * val_fraction))
-    if len(keys) >= 2:
+    if len(keys) >= 2 and val_fraction > 0:
         n_val = min(max(n_val, 1), len(keys) - 1)
     chosen = np.zeros(len(keys), bool)
     chosen[rng.permutation(len(keys))[:n_val]] = True

@@ -62,7 +62,7 @@ class TrainParams:
     scale_min (0.9), scale_max (1.1): random uniform scaling of xyz and height above ground.
     jitter (0.02): standard deviation (m) of Gaussian noise added to xyz (clipped at 3 sigma).
     val_fraction (0.3): when no validation data is given, this fraction of ``split_cell`` squares (seeded) is
-        held out of every training file.
+        held out of every training file (at least one square of a file with two or more; 0 = none).
     split_cell (32.0): square size (m) of that spatial split.
     val_every (8): validate every this many epochs (and after the last one); 0 = only after the last.
     use_rgb (False): feed colour (+ presence flag) to the network; the default model is trained without, so it
