@@ -110,9 +110,6 @@ def _per_point(uniq: np.ndarray, values: np.ndarray, block: np.ndarray) -> np.nd
     return np.where(uniq[pos] == block, values[pos], np.nan)
 
 
-_MODE_BIN = 0.005  # depth histogram bin of :func:`_block_mode` (m); smoothed over 5 bins (2.5 cm, about the noise)
-
-
 def _block_mode(sdt: np.ndarray, s0: float, params: FacadeParams, members: np.ndarray) -> np.ndarray:
     """Per point, the wall depth of the ``members`` within ``wall_band`` of the plane in its ``wall_block`` of s:
     the front-most peak of their smoothed depth histogram that reaches half its maximum, refined to the median of
@@ -123,8 +120,8 @@ def _block_mode(sdt: np.ndarray, s0: float, params: FacadeParams, members: np.nd
         return np.full(len(sdt), np.nan)
     uniq, b_idx = np.unique(block[near], return_inverse=True)
     d_near = sdt[near, 2]
-    n_bins = int(np.ceil(2 * ev.wall_band / _MODE_BIN)) + 1
-    bins = np.clip(((d_near + ev.wall_band) / _MODE_BIN).astype(np.int64), 0, n_bins - 1)
+    n_bins = int(np.ceil(2 * ev.wall_band / ev.wall_mode_bin)) + 1
+    bins = np.clip(((d_near + ev.wall_band) / ev.wall_mode_bin).astype(np.int64), 0, n_bins - 1)
     hist = np.bincount(b_idx * n_bins + bins, minlength=len(uniq) * n_bins).reshape(len(uniq), n_bins)
     smooth = ndimage.uniform_filter1d(hist.astype(np.float64), 5, axis=1, mode="constant")
     # the front-most peak of at least half the highest: glass and curtains lie behind the wall, and at a shop
@@ -133,7 +130,7 @@ def _block_mode(sdt: np.ndarray, s0: float, params: FacadeParams, members: np.nd
     right = np.pad(smooth, ((0, 0), (0, 1)))[:, 1:]
     strong = (smooth >= left) & (smooth >= right) & (smooth >= 0.5 * smooth.max(axis=1, keepdims=True))
     front_most = n_bins - 1 - np.argmax(strong[:, ::-1], axis=1)
-    peak = -ev.wall_band + (front_most + 0.5) * _MODE_BIN
+    peak = -ev.wall_band + (front_most + 0.5) * ev.wall_mode_bin
     close = np.abs(d_near - peak[b_idx]) <= ev.pass_depth
     mode = peak.copy()
     if close.any():

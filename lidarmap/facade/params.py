@@ -409,6 +409,8 @@ class EvidenceParams:
         behind it count; range noise of 1 cm does not).
     wall_band (0.1), wall_block (1.0): the local wall depth is the median depth of the points within wall_band of
         the plane per wall_block metres along it (a wall bowing or drifting by cm is not glass).
+    wall_mode_bin (0.005): with two crossed scanner heads, each head's wall per block is the front-most peak of a
+        histogram of its depths in bins of this size (m), smoothed over 5 bins (2.5 cm, about the range noise).
     max_missed_pulses (150): longer runs of pulses without return in one scan line are not reconstructed (the
         line left the façade: sky, far away).
     missed_max_incidence_deg (75.0): pulses this grazing to the wall may return nothing from a wall: no evidence.
@@ -435,6 +437,7 @@ class EvidenceParams:
         "pass_depth": ">= 0",
         "wall_band": "> 0",
         "wall_block": "> 0",
+        "wall_mode_bin": "> 0",
         "max_missed_pulses": ">= 0",
         "missed_max_incidence_deg": "[0, 90]",
         "min_pass_pulses": ">= 1",
@@ -451,6 +454,7 @@ class EvidenceParams:
     pass_depth: float = 0.02
     wall_band: float = 0.1
     wall_block: float = 1.0
+    wall_mode_bin: float = 0.005
     max_missed_pulses: int = 150
     missed_max_incidence_deg: float = 75.0
     min_pass_pulses: int = 1

@@ -142,6 +142,9 @@ class RefineParams:
             outside each of its four sides carries net wall weight (enclosed by wall); 1.0 switches it off.
         seen_fraction (0.5): a stored window is re-scored only when the new campaign saw at least this share of its
             cells; otherwise it is left exactly as stored.
+        refit_keep_share (0.5): a re-scored stored window/door whose refitted rectangle keeps less than this share
+            of its opening evidence keeps its stored rectangle: such a refit found the patch the new campaign did
+            not read as wall (a strip of a door leaf), not the opening's sides.
         structure_vote (0.5): a structure keeps the pixels that at least this share of the campaigns that saw them
             saw as the object.
         min_conflict_area (0.02): overlaps between objects on two layers smaller than this (m²; half-cell outline
@@ -181,6 +184,7 @@ class RefineParams:
         "max_window_uncertainty": ">= 0",
         "enclosed_wall_share": ">= 0",
         "seen_fraction": ">= 0",
+        "refit_keep_share": "[0, 1]",
         "structure_vote": ">= 0",
         "min_conflict_area": ">= 0",
         "roof_min_height": ">= 0",
@@ -210,6 +214,7 @@ class RefineParams:
     max_window_uncertainty: float = 0.5
     enclosed_wall_share: float = 0.5
     seen_fraction: float = 0.5
+    refit_keep_share: float = 0.5
     structure_vote: float = 0.5
     min_conflict_area: float = 0.02
     roof_min_height: float = 2.0
@@ -766,16 +771,13 @@ def _refit_stored(e: Element, votes: _Votes, params: RefineParams) -> tuple[Poly
     return box(sides[0], sides[2], sides[1], sides[3]), float(eps)
 
 
-_REFIT_KEEPS = 0.5  # a stored opening's refit must keep this share of its opening evidence, else it stays as stored
-
-
 def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size: float = 0.0) -> Element | None:
     """A stored window/door the new campaign saw but did not find: ``None`` when the wall evidence (all campaigns so
     far) over its support -- the cells of it some campaign saw as opening -- is at least its opening evidence
     there (no support: :func:`outweighed_by_wall` over all of it); otherwise kept, its sides refitted on the fused
     votes (:func:`_refit_stored`) and its ε recomputed there. A large ε alone does not drop it: a door leaf one
     campaign reads as wall scan line by scan line leaves a striped vote map whose ε is high while the opening
-    evidence still outweighs the wall's. A refit that keeps less than ``_REFIT_KEEPS`` of the opening evidence is
+    evidence still outweighs the wall's. A refit that keeps less than ``refit_keep_share`` of the opening evidence is
     not used: the stored rectangle stays; ``None`` when a refit keeping more leaves a side shorter than ``min_size``
     (a sliver is no opening)."""
     g = votes.grid
@@ -800,7 +802,7 @@ def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size:
     # a refit that keeps less than half of the opening evidence has not found the opening's sides but the patch
     # the new campaign happened not to read as wall (a door leaf seen as wall but a strip): the stored rectangle
     # stays; one that keeps most of it and is a sliver is no opening
-    if float(votes.window[support & g.raster(poly)].sum()) < _REFIT_KEEPS * opening:
+    if float(votes.window[support & g.raster(poly)].sum()) < params.refit_keep_share * opening:
         return e
     if min(b[2] - b[0], b[3] - b[1]) < min_size:
         return None
