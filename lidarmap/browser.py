@@ -19,7 +19,8 @@ __all__ = ["CHROMIUM_ARGS", "CHROMIUM_NAMES", "PageResult", "find_chromium", "op
 #: Executables tried in this order (after ``LIDARMAP_CHROMIUM``).
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 #: Software WebGL (no GPU in CI containers).
-CHROMIUM_ARGS = ("--use-gl=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist", "--no-sandbox")
+CHROMIUM_ARGS = ("--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
+                 "--no-sandbox", "--disable-gpu-watchdog")
 
 
 def find_chromium() -> str | None:
@@ -82,6 +83,8 @@ def open_viewer(page_path: str | Path, screenshot: str | Path | None = None, pic
                 page.uncheck(f"#toggle-{name}")
             if hidden_screenshot is not None:
                 page.screenshot(path=str(hidden_screenshot))
+            if error is None and page.evaluate("window.lidarmapViewer.renderer.getContext().isContextLost()"):
+                error = "the page lost its WebGL context (its screenshots may be blank)"
             return PageResult(ready, count, picked, error, console, timings)
         finally:
             browser.close()
