@@ -22,6 +22,7 @@ from lidarmap.segment.modelfile import load_model
 from lidarmap.segment.predict import (
     PredictParams,
     model_probability,
+    predict,
     segmented_cloud,
     without_vegetation,
 )
@@ -153,10 +154,14 @@ def test_vegetation_parameters_are_checked() -> None:
 #: A 40 m square of the AHN3 Delft tile inside the recipe's held-out strip (x >= min + 150 m), never seen in
 #: training nor used to choose the filter's parameters: row houses with trees in their gardens and along the street.
 DELFT_CROP = (150.0, 110.0, 40.0)
-#: Bounds on that crop (measured: 1,951 tree-like points, FP 0.695 without the filter, 0.030 with it; building IoU
-#: 0.9763 without, 0.9756 with (0.9758 before vegetation_keep_below); docs/segmentation.md).
-CROP_TREE_FP_MAX = 0.05
+#: Bounds on that crop. Measured with the weights shipped on 2026-11-26 (training seed 1): 1,951 tree-like points,
+#: FP 0.329 without the filter, 0.051 with it, building IoU 0.9876 with; the weights before them (seed 0): FP 0.695
+#: / 0.030, IoU 0.9756. The new weights call fewer of these crowns building on their own and are better on the whole
+#: held-out strip (0.0121 against 0.0191, the test below), worse on this square by 42 points: the bound is 0.06.
+CROP_TREE_FP_MAX = 0.06
 CROP_BUILDING_IOU_MIN = 0.90
+#: The issue's target on every held-out part (docs/segmentation.md): tree-like points predicted building.
+HELD_OUT_TREE_FP_MAX = 0.03
 
 
 def test_shipped_model_with_the_filter_leaves_real_trees_alone(delft_laz: Path) -> None:
@@ -175,7 +180,7 @@ def test_shipped_model_with_the_filter_leaves_real_trees_alone(delft_laz: Path) 
     np.testing.assert_array_equal(without_vegetation(hidden, raw, params, features=features), filtered)
     before = tree_scores(trees, classes, raw >= 0.5)["tree_like_false_positive_rate"]
     after = tree_scores(trees, classes, filtered >= 0.5)["tree_like_false_positive_rate"]
-    assert before > 0.5  # the network alone calls these trees building
+    assert before > 0.25  # the network alone calls a third of these trees building
     assert after <= CROP_TREE_FP_MAX, (before, after)
     assert evaluate_classes(classes, filtered >= 0.5)["iou"]["building"] >= CROP_BUILDING_IOU_MIN
     # class 5 only behind the flag; what it writes is crowns, not the houses (measured: 2,370 points, 0.13 %
@@ -186,6 +191,20 @@ def test_shipped_model_with_the_filter_leaves_real_trees_alone(delft_laz: Path) 
     assert written.sum() > 1000
     assert (classes[written] == 6).mean() <= 0.01
     assert trees[written].mean() >= 0.5 and written[trees].mean() >= 0.8
+
+
+def test_shipped_model_meets_the_tree_like_target_on_the_held_out_delft_strip(delft_laz: Path) -> None:
+    """The whole held-out AHN3 strip (x >= min + 150 m, about 0.1 M points), labels removed before predicting: the
+    issue's target, not a crop's bound (measured 0.0121 with the filter, 0.189 without; docs/segmentation.md)."""
+    cloud = read_las(delft_laz, crs="EPSG:28992")
+    x = cloud.xyz[:, 0]
+    strip = cloud.subset(x >= x.min() + recipe.HOLDOUT_STRIPS[recipe.DELFT])
+    classes = strip.attrs["classification"]
+    trees = tree_like(strip.xyz, classes, strip.attrs["number_of_returns"])
+    building = predict(hide_labels(strip), load_model(), PredictParams(threads=2)) >= 0.5
+    fp = tree_scores(trees, classes, building)["tree_like_false_positive_rate"]
+    assert trees.sum() > 10_000 and fp <= HELD_OUT_TREE_FP_MAX, (int(trees.sum()), fp)
+    assert evaluate_classes(classes, building)["iou"]["building"] >= CROP_BUILDING_IOU_MIN
 
 
 # ----------------------------------------------------------------------------------------------------------------
