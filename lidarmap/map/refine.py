@@ -1006,6 +1006,28 @@ def _fuse_elements(stored: Facade, obs: Facade, layer_map: dict[int, int], votes
 
 
 _FRINGE_CELLS = 3  # wall within this many cells outside a side encloses it (a reveal's shadow fringe between)
+_GROW_CELLS = 10  # an enclosed window's side reaches at most this far across unvoted cells (a parapet's shadow)
+
+
+def _vote_extent(u: Element, votes: _Votes, max_area: float) -> tuple[tuple[int, int], tuple[int, int]]:
+    """Grid rows and columns [lo, hi) spanned by an unknown region and the window votes connected to it: a region
+    an earlier campaign stored over part of a hole (the strip its sampling missed) is often narrower than the
+    window a later campaign saw whole there, so its own bounds alone cannot hold the window's sides. The search
+    reaches as far as a window of ``max_area`` could (its side at most that many m² over the cell)."""
+    g = votes.grid
+    s_lo, t_lo, s_hi, t_hi = u.polygon.bounds
+    c0, c1, r0, r1 = g.line(s_lo, 0), g.line(s_hi, 0), g.line(t_lo, 1), g.line(t_hi, 1)
+    reach = math.ceil(math.sqrt(max_area) / g.cell)
+    pr0, pr1 = max(r0 - reach, 0), min(r1 + reach, g.shape[0])
+    pc0, pc1 = max(c0 - reach, 0), min(c1 + reach, g.shape[1])
+    patch = (slice(pr0, pr1), slice(pc0, pc1))
+    labels, _ = ndimage.label(net_votes(votes.window[patch], votes.objects[patch])[0] > 0)
+    touching = np.unique(labels[g.raster(u.polygon)[patch] & (labels > 0)])
+    rr, cc = np.nonzero(np.isin(labels, touching[touching > 0]))
+    if len(rr) == 0:
+        return (r0, r1), (c0, c1)
+    return ((min(r0, pr0 + int(rr.min())), max(r1, pr0 + int(rr.max()) + 1)),
+            (min(c0, pc0 + int(cc.min())), max(c1, pc0 + int(cc.max()) + 1)))
 
 
 def _enclosed_window(u: Element, votes: _Votes, fparams: FacadeParams,
@@ -1020,30 +1042,72 @@ def _enclosed_window(u: Element, votes: _Votes, fparams: FacadeParams,
     s_lo, t_lo, s_hi, t_hi = u.polygon.bounds
     if (s_hi - s_lo) * (t_hi - t_lo) > 2 * fparams.openings.max_opening_area:
         return None  # too wide to be mostly one window; and every line pair there would be costly
-    c_lo, c_hi = max(g.line(s_lo, 0) - off - 1, 0), min(g.line(s_hi, 0) + off + 1, g.shape[1])
-    r_lo, r_hi = max(g.line(t_lo, 1) - off - 1, 0), min(g.line(t_hi, 1) + off + 1, g.shape[0])
+    rows_, cols_ = _vote_extent(u, votes, fparams.openings.max_opening_area)
+    if (rows_[1] - rows_[0]) * (cols_[1] - cols_[0]) * g.cell ** 2 > 2 * fparams.openings.max_opening_area:
+        # the votes run into a neighbour or a larger hole: the region's own bounds
+        rows_, cols_ = (g.line(t_lo, 1), g.line(t_hi, 1)), (g.line(s_lo, 0), g.line(s_hi, 0))
+    c_lo, c_hi = max(cols_[0] - off - 1, 0), min(cols_[1] + off + 1, g.shape[1])
+    r_lo, r_hi = max(rows_[0] - off - 1, 0), min(rows_[1] + off + 1, g.shape[0])
     patch = (slice(r_lo, r_hi), slice(c_lo, c_hi))
     o = votes.objects[patch]
     w = _own_votes(votes.window[patch], o, g.raster(u.polygon)[patch])
-    rect, eps = refit_rectangle(w, o, range(1, c_hi - c_lo), range(1, r_hi - r_lo))
+    # ties (cells without votes weigh nothing) go to the smallest rectangle: the sides the votes support; a side
+    # hidden beyond the fringe grows below, up to the wall
+    rect, eps = refit_rectangle(w, o, range(1, c_hi - c_lo), range(1, r_hi - r_lo), np.zeros(w.shape))
     if rect is None or eps > params.max_window_uncertainty:
         return None
     r0, r1, c0, c1 = rect
-    size = (c1 - c0) * g.cell, (r1 - r0) * g.cell
+    wall = net_votes(votes.window, votes.objects)[1] > 0
+    unvoted = (votes.window == 0) & (votes.objects == 0)
+    rect = [r0 + r_lo, r1 + r_lo, c0 + c_lo, c1 + c_lo]  # R0, R1, C0, C1 on the façade's grid
+    for side in range(4):
+        if _side_enclosed(wall, rect, side) < params.enclosed_wall_share:
+            # a side hidden beyond the fringe (a balcony parapet in front of the window's lower part): it reaches
+            # across the cells no campaign voted on, up to the wall that encloses it
+            grown = _grown_side(unvoted, rect, side)
+            trial = list(rect)
+            trial[side] = grown
+            if _side_enclosed(wall, trial, side) < params.enclosed_wall_share:
+                return None
+            rect = trial
+    R0, R1, C0, C1 = rect
+    size = (C1 - C0) * g.cell, (R1 - R0) * g.cell
     if min(size) < fparams.openings.min_opening_size or size[0] * size[1] > fparams.openings.max_opening_area:
         return None
-    wall = net_votes(votes.window, votes.objects)[1] > 0
-    R0, R1, C0, C1 = r0 + r_lo, r1 + r_lo, c0 + c_lo, c1 + c_lo  # on the façade's grid
-    reach = _FRINGE_CELLS
-    rows, cols = wall.shape
-    rings = [wall[R0:R1, max(C0 - reach, 0):C0].any(axis=1) if C0 > 0 else None,
-             wall[R0:R1, C1:C1 + reach].any(axis=1) if C1 < cols else None,
-             wall[max(R0 - reach, 0):R0, C0:C1].any(axis=0) if R0 > 0 else None,
-             wall[R1:R1 + reach, C0:C1].any(axis=0) if R1 < rows else None]
-    if any(ring is None or ring.mean() < params.enclosed_wall_share for ring in rings):
-        return None
-    poly = box(g.coord(c0 + c_lo, 0), g.coord(r0 + r_lo, 1), g.coord(c1 + c_lo, 0), g.coord(r1 + r_lo, 1))
+    poly = box(g.coord(C0, 0), g.coord(R0, 1), g.coord(C1, 0), g.coord(R1, 1))
     return poly, float(eps)
+
+
+def _side_enclosed(wall: np.ndarray, rect: list[int], side: int) -> float:
+    """Share of a rectangle's rows (left/right side) or columns (bottom/top) with net wall within ``_FRINGE_CELLS``
+    outside that side (``side``: 0 bottom, 1 top, 2 left, 3 right, as ``rect`` = [R0, R1, C0, C1]); 0 at the grid's
+    border."""
+    R0, R1, C0, C1 = rect
+    rows, cols = wall.shape
+    reach = _FRINGE_CELLS
+    if (side == 0 and R0 <= 0) or (side == 1 and R1 >= rows) or (side == 2 and C0 <= 0) or (side == 3 and C1 >= cols):
+        return 0.0
+    ring = [wall[max(R0 - reach, 0):R0, C0:C1].any(axis=0), wall[R1:R1 + reach, C0:C1].any(axis=0),
+            wall[R0:R1, max(C0 - reach, 0):C0].any(axis=1), wall[R0:R1, C1:C1 + reach].any(axis=1)][side]
+    return float(ring.mean()) if ring.size else 0.0
+
+
+def _grown_side(unvoted: np.ndarray, rect: list[int], side: int) -> int:
+    """The side's grid line moved outwards across lines of which at least 90 % of the cells (over the rectangle's
+    span) carry no vote at all, at most ``_GROW_CELLS``."""
+    R0, R1, C0, C1 = rect
+    rows, cols = unvoted.shape
+    line = rect[side]
+    step = -1 if side in (0, 2) else 1
+    for _ in range(_GROW_CELLS):
+        k = line - 1 if step < 0 else line  # the grid line just outside
+        if k < 0 or k >= (rows if side < 2 else cols):
+            break
+        cells = unvoted[k, C0:C1] if side < 2 else unvoted[R0:R1, k]
+        if cells.size == 0 or cells.mean() < 0.9:
+            break
+        line += step
+    return line
 
 
 def _promote_enclosed(objects: list[Element], unknown: list[Element], votes: _Votes, ids: _Ids,
