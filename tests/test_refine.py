@@ -692,3 +692,28 @@ def test_an_enclosed_window_takes_the_votes_beyond_its_region_and_its_side_hidde
     objects, unknown = _promote_enclosed([], [u], votes_for(tall), _Ids([u]), FacadeParams(), RefineParams(),
                                          campaign_id=2)
     assert objects == [] and unknown == [u], [e.polygon.bounds for e in objects]
+
+
+def test_the_type_of_a_fused_opening_goes_by_the_evidence_over_the_fused_rectangle():
+    """Issue 18 round 6 (dev seed 97 b7 f1, a window with a 0.55 m sill): campaign 1 stored the window; campaign 3
+    reported a door twice its width, over the window and the wall beside it. The refit keeps the window's extent
+    (campaign 1 saw the other half as wall with more weight), but the type vote summed each shape's window votes
+    over its own cells, so the door's rejected half outvoted the window and the window became a door. Counted over
+    the fused rectangle, the two shapes hold equal evidence and the stored kind stays; a door shape holding more
+    evidence over the rectangle itself still makes it a door."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    window, door_shape = box(1.0, 0.5, 1.7, 2.4), box(1.0, 0.5, 2.4, 2.5)
+    w_cells, extra = grid.raster(window), grid.raster(door_shape) & ~grid.raster(window)
+    stored = [Element(3, ElementKind.WINDOW, window, None, 0.02, campaigns=[1])]
+    new = [Element(0, ElementKind.DOOR, door_shape, None, 0.27, campaigns=[2])]
+    for new_weight, kind in ((1, ElementKind.WINDOW), (2, ElementKind.DOOR)):
+        window_new = new_weight * (w_cells | extra)
+        objects = 3 * (~w_cells).astype(int)  # campaign 1: wall around the window, the door's other half included
+        votes = _Votes(grid, w_cells.astype(int) + window_new, objects, np.full(grid.shape, 2),
+                       np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=window_new)
+        fused, _ = _fuse_openings(stored, new, votes, _Ids(stored + new), RefineParams(), (0.0, 4.0, 0.0, 4.0), [],
+                                  0.45)
+        assert [(e.element_id, e.kind) for e in fused] == [(3, kind)], new_weight
+        assert polygon_iou(fused[0].polygon, window) >= 0.9, fused[0].polygon.bounds

@@ -619,15 +619,17 @@ def outweighed_by_wall(window_votes: np.ndarray, object_votes: np.ndarray, cells
     return o > float(np.asarray(window_votes, dtype=np.float64)[cells].sum())
 
 
-def _member_weights(members: list[Element], n_old: int, votes: _Votes) -> list[float]:
+def _member_weights(members: list[Element], n_old: int, votes: _Votes, within: np.ndarray | None = None) -> list[float]:
     """Evidence weight of each member: stored shapes (the first ``n_old``) by the earlier campaigns' window votes
     over their cells, the new campaign's shapes by its own; at least the campaign count, so that a shape whose
-    votes a neighbour's claimed still counts."""
+    votes a neighbour's claimed still counts. ``within`` (cells): only the votes there count."""
     old_w = votes.window_old()
     new_w = votes.window if votes.window_new is None else votes.window_new
     out = []
     for k, m in enumerate(members):
         cells = votes.grid.raster(m.polygon)
+        if within is not None:
+            cells = cells & within
         out.append(max(evidence_weight(old_w if k < n_old else new_w, cells), float(_weight(m))))
     return out
 
@@ -693,7 +695,10 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     if outweighed_by_wall(votes.window, votes.objects, g.raster(poly)):
         return None
     keeper = next((m for m in members if m.element_id == keep_id), members[0])
-    kind = weighted_kind([m.kind for m in members], evidence, keeper.kind)
+    # the kind of the fused rectangle goes by the evidence each shape holds over it: the part of a shape the refit
+    # rejected (a door shape twice the window's width, its other half wall) has no say in what the opening is
+    kind = weighted_kind([m.kind for m in members], _member_weights(members, n_old, votes, g.raster(poly)),
+                         keeper.kind)
     layered = [m for m in members if m.layer_id is not None]
     layer_id = max(layered, key=_weight).layer_id if layered else None
     campaigns = sorted({c for m in members for c in m.campaigns})
