@@ -682,6 +682,9 @@ def test_an_enclosed_window_takes_the_votes_beyond_its_region_and_its_side_hidde
                                          campaign_id=2)
     assert unknown == [] and [(e.kind, e.element_id) for e in objects] == [(ElementKind.WINDOW, 8)]
     assert polygon_iou(objects[0].polygon, window) >= 0.9, objects[0].polygon.bounds  # within a cell
+    objects, unknown = _promote_enclosed([], [u], votes_for(hidden), _Ids([u]), FacadeParams(),
+                                         RefineParams(enclosed_max_grow=0.0), campaign_id=2)
+    assert objects == [] and unknown == [u]  # no growth: the old rule's answer
     # nothing below the unvoted rows: the hole runs off the façade's bottom (a door, a gap), not enclosed
     no_floor = grid.raster(box(1.0, 0.0, 2.0, 2.5))
     objects, unknown = _promote_enclosed([], [u], votes_for(no_floor, floor=0.0), _Ids([u]), FacadeParams(),

@@ -140,6 +140,9 @@ class RefineParams:
         enclosed_wall_share (0.5): an unknown region the new campaign saw becomes a window when the fused votes
             hold a rectangle in it with ε <= ``max_window_uncertainty`` and at least this share of the cells just
             outside each of its four sides carries net wall weight (enclosed by wall); 1.0 switches it off.
+        enclosed_max_grow (1.0): ... a side without wall just outside (a balcony parapet hides the window's lower
+            part: cells no campaign voted on) reaches across such cells by at most this many metres to the wall
+            that encloses it; 0 switches the growth off.
         seen_fraction (0.5): a stored window is re-scored only when the new campaign saw at least this share of its
             cells; otherwise it is left exactly as stored.
         refit_keep_share (0.5): a re-scored stored window/door whose refitted rectangle keeps less than this share
@@ -183,6 +186,7 @@ class RefineParams:
         "line_offsets": ">= 0",
         "max_window_uncertainty": ">= 0",
         "enclosed_wall_share": ">= 0",
+        "enclosed_max_grow": ">= 0",
         "seen_fraction": ">= 0",
         "refit_keep_share": "[0, 1]",
         "structure_vote": ">= 0",
@@ -213,6 +217,7 @@ class RefineParams:
     line_offsets: int = 1
     max_window_uncertainty: float = 0.5
     enclosed_wall_share: float = 0.5
+    enclosed_max_grow: float = 1.0
     seen_fraction: float = 0.5
     refit_keep_share: float = 0.5
     structure_vote: float = 0.5
@@ -1011,7 +1016,6 @@ def _fuse_elements(stored: Facade, obs: Facade, layer_map: dict[int, int], votes
 
 
 _FRINGE_CELLS = 3  # wall within this many cells outside a side encloses it (a reveal's shadow fringe between)
-_GROW_CELLS = 10  # an enclosed window's side reaches at most this far across unvoted cells (a parapet's shadow)
 
 
 def _vote_extent(u: Element, votes: _Votes, max_area: float) -> tuple[tuple[int, int], tuple[int, int]]:
@@ -1069,7 +1073,7 @@ def _enclosed_window(u: Element, votes: _Votes, fparams: FacadeParams,
         if _side_enclosed(wall, rect, side) < params.enclosed_wall_share:
             # a side hidden beyond the fringe (a balcony parapet in front of the window's lower part): it reaches
             # across the cells no campaign voted on, up to the wall that encloses it
-            grown = _grown_side(unvoted, rect, side)
+            grown = _grown_side(unvoted, rect, side, round(params.enclosed_max_grow / g.cell))
             trial = list(rect)
             trial[side] = grown
             if _side_enclosed(wall, trial, side) < params.enclosed_wall_share:
@@ -1097,14 +1101,14 @@ def _side_enclosed(wall: np.ndarray, rect: list[int], side: int) -> float:
     return float(ring.mean()) if ring.size else 0.0
 
 
-def _grown_side(unvoted: np.ndarray, rect: list[int], side: int) -> int:
+def _grown_side(unvoted: np.ndarray, rect: list[int], side: int, max_cells: int) -> int:
     """The side's grid line moved outwards across lines of which at least 90 % of the cells (over the rectangle's
-    span) carry no vote at all, at most ``_GROW_CELLS``."""
+    span) carry no vote at all, by at most ``max_cells``."""
     R0, R1, C0, C1 = rect
     rows, cols = unvoted.shape
     line = rect[side]
     step = -1 if side in (0, 2) else 1
-    for _ in range(_GROW_CELLS):
+    for _ in range(max_cells):
         k = line - 1 if step < 0 else line  # the grid line just outside
         if k < 0 or k >= (rows if side < 2 else cols):
             break
