@@ -1042,10 +1042,13 @@ def _vote_extent(u: Element, votes: _Votes, max_area: float) -> tuple[tuple[int,
 def _enclosed_window(u: Element, votes: _Votes, fparams: FacadeParams,
                      params: RefineParams) -> tuple[Polygon, float] | None:
     """The window an unknown region holds on the fused votes, or ``None``: the rectangle over every grid line
-    within its bounds (± ``line_offsets``) minimising the weighted eq. (3), kept when ε <= ``max_window_uncertainty``,
-    its sides >= ``min_opening_size``, its area <= ``max_opening_area``, and when on each of its four sides at
-    least ``enclosed_wall_share`` of the cells just outside carry net wall weight (a window enclosed by wall; a
-    door reaching the ground or a hole running off the façade is not)."""
+    within the bounds of the region and of the window votes connected to it (± ``line_offsets``; :func:`_vote_extent`)
+    minimising the weighted eq. (3) (ties: the smallest), kept when ε <= ``max_window_uncertainty``, its sides >=
+    ``min_opening_size``, its area <= ``max_opening_area``, and when on each of its four sides at least
+    ``enclosed_wall_share`` of the cells just outside carry net wall weight (a window enclosed by wall; a door
+    reaching the ground or a hole running off the façade is not). A side failing that first grows across cells no
+    campaign voted on by at most ``enclosed_max_grow`` (a parapet hides the window's lower part) and is judged
+    there."""
     g = votes.grid
     off = params.line_offsets
     s_lo, t_lo, s_hi, t_hi = u.polygon.bounds
