@@ -653,3 +653,70 @@ def test_a_stored_door_is_not_refitted_to_the_strip_a_later_campaign_missed():
     fused, _ = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), (0.0, 4.0, 0.0, 4.0), [], 0.45)
     assert [(e.element_id, e.kind) for e in fused] == [(3, ElementKind.DOOR)]
     assert fused[0].polygon.equals_exact(door, 1e-9), fused[0].polygon.bounds
+
+
+def test_an_enclosed_window_takes_the_votes_beyond_its_region_and_its_side_hidden_behind_a_parapet():
+    """Issue 18 round 6 (dev seed 96 b5 f0, windows above balconies): the campaigns saw the upper part of a window
+    as opening, beyond the unknown region an earlier campaign stored over it (its top 3 rows lie above the region),
+    and its lower 0.5 m not at all (the balcony's parapet in front of it; no vote either way), with the parapet's
+    wall below. The old rule searched the rectangle only within the region's bounds (+- one cell) and required wall
+    within 3 cells of every side: it left the region unknown. The window now takes the votes connected to the
+    region and its bottom reaches across the unvoted rows to the parapet. Without wall beyond the unvoted rows (the
+    hole runs into the façade's bottom) it stays unknown; so does a region whose hidden band is 2 m tall."""
+    from lidarmap.facade.params import FacadeParams
+    from lidarmap.map.refine import _Grid, _Ids, _promote_enclosed, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (60, 40))
+    window = box(1.0, 2.0, 2.0, 3.9)  # truth: sill at 2.0, top at 3.9
+    seen_open = grid.raster(box(1.0, 2.5, 2.0, 3.9))  # the part above the parapet's shadow
+    hidden = grid.raster(box(1.0, 2.0, 2.0, 2.5))
+    region = box(1.0, 2.2, 2.0, 3.6)  # the unknown region campaign 1 stored
+
+    def votes_for(hide, floor=0.0):
+        wall = ~seen_open & ~hide & (grid.raster(box(0.0, floor, 4.0, 6.0)))
+        return _Votes(grid, 2 * seen_open.astype(int), 2 * wall.astype(int), np.full(grid.shape, 2),
+                      np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=seen_open.astype(int))
+
+    u = Element(7, ElementKind.UNKNOWN, region, None, math.inf, campaigns=[1])
+    objects, unknown = _promote_enclosed([], [u], votes_for(hidden), _Ids([u]), FacadeParams(), RefineParams(),
+                                         campaign_id=2)
+    assert unknown == [] and [(e.kind, e.element_id) for e in objects] == [(ElementKind.WINDOW, 8)]
+    assert polygon_iou(objects[0].polygon, window) >= 0.9, objects[0].polygon.bounds  # within a cell
+    objects, unknown = _promote_enclosed([], [u], votes_for(hidden), _Ids([u]), FacadeParams(),
+                                         RefineParams(enclosed_max_grow=0.0), campaign_id=2)
+    assert objects == [] and unknown == [u]  # no growth: the old rule's answer
+    # nothing below the unvoted rows: the hole runs off the façade's bottom (a door, a gap), not enclosed
+    no_floor = grid.raster(box(1.0, 0.0, 2.0, 2.5))
+    objects, unknown = _promote_enclosed([], [u], votes_for(no_floor, floor=0.0), _Ids([u]), FacadeParams(),
+                                         RefineParams(), campaign_id=2)
+    assert objects == [] and unknown == [u]
+    # an unvoted band of 2 m below the votes: more than a parapet's shadow
+    tall = grid.raster(box(1.0, 0.5, 2.0, 2.5))
+    objects, unknown = _promote_enclosed([], [u], votes_for(tall), _Ids([u]), FacadeParams(), RefineParams(),
+                                         campaign_id=2)
+    assert objects == [] and unknown == [u], [e.polygon.bounds for e in objects]
+
+
+def test_the_type_of_a_fused_opening_goes_by_the_evidence_over_the_fused_rectangle():
+    """Issue 18 round 6 (dev seed 97 b7 f1, a window with a 0.55 m sill): campaign 1 stored the window; campaign 3
+    reported a door twice its width, over the window and the wall beside it. The refit keeps the window's extent
+    (campaign 1 saw the other half as wall with more weight), but the type vote summed each shape's window votes
+    over its own cells, so the door's rejected half outvoted the window and the window became a door. Counted over
+    the fused rectangle, the two shapes hold equal evidence and the stored kind stays; a door shape holding more
+    evidence over the rectangle itself still makes it a door."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    window, door_shape = box(1.0, 0.5, 1.7, 2.4), box(1.0, 0.5, 2.4, 2.5)
+    w_cells, extra = grid.raster(window), grid.raster(door_shape) & ~grid.raster(window)
+    stored = [Element(3, ElementKind.WINDOW, window, None, 0.02, campaigns=[1])]
+    new = [Element(0, ElementKind.DOOR, door_shape, None, 0.27, campaigns=[2])]
+    for new_weight, kind in ((1, ElementKind.WINDOW), (2, ElementKind.DOOR)):
+        window_new = new_weight * (w_cells | extra)
+        objects = 3 * (~w_cells).astype(int)  # campaign 1: wall around the window, the door's other half included
+        votes = _Votes(grid, w_cells.astype(int) + window_new, objects, np.full(grid.shape, 2),
+                       np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=window_new)
+        fused, _ = _fuse_openings(stored, new, votes, _Ids(stored + new), RefineParams(), (0.0, 4.0, 0.0, 4.0), [],
+                                  0.45)
+        assert [(e.element_id, e.kind) for e in fused] == [(3, kind)], new_weight
+        assert polygon_iou(fused[0].polygon, window) >= 0.9, fused[0].polygon.bounds

@@ -140,6 +140,9 @@ class RefineParams:
         enclosed_wall_share (0.5): an unknown region the new campaign saw becomes a window when the fused votes
             hold a rectangle in it with ε <= ``max_window_uncertainty`` and at least this share of the cells just
             outside each of its four sides carries net wall weight (enclosed by wall); 1.0 switches it off.
+        enclosed_max_grow (1.0): ... a side without wall just outside (a balcony parapet hides the window's lower
+            part: cells no campaign voted on) reaches across such cells by at most this many metres to the wall
+            that encloses it; 0 switches the growth off.
         seen_fraction (0.5): a stored window is re-scored only when the new campaign saw at least this share of its
             cells; otherwise it is left exactly as stored.
         refit_keep_share (0.5): a re-scored stored window/door whose refitted rectangle keeps less than this share
@@ -183,6 +186,7 @@ class RefineParams:
         "line_offsets": ">= 0",
         "max_window_uncertainty": ">= 0",
         "enclosed_wall_share": ">= 0",
+        "enclosed_max_grow": ">= 0",
         "seen_fraction": ">= 0",
         "refit_keep_share": "[0, 1]",
         "structure_vote": ">= 0",
@@ -213,6 +217,7 @@ class RefineParams:
     line_offsets: int = 1
     max_window_uncertainty: float = 0.5
     enclosed_wall_share: float = 0.5
+    enclosed_max_grow: float = 1.0
     seen_fraction: float = 0.5
     refit_keep_share: float = 0.5
     structure_vote: float = 0.5
@@ -619,15 +624,17 @@ def outweighed_by_wall(window_votes: np.ndarray, object_votes: np.ndarray, cells
     return o > float(np.asarray(window_votes, dtype=np.float64)[cells].sum())
 
 
-def _member_weights(members: list[Element], n_old: int, votes: _Votes) -> list[float]:
+def _member_weights(members: list[Element], n_old: int, votes: _Votes, within: np.ndarray | None = None) -> list[float]:
     """Evidence weight of each member: stored shapes (the first ``n_old``) by the earlier campaigns' window votes
     over their cells, the new campaign's shapes by its own; at least the campaign count, so that a shape whose
-    votes a neighbour's claimed still counts."""
+    votes a neighbour's claimed still counts. ``within`` (cells): only the votes there count."""
     old_w = votes.window_old()
     new_w = votes.window if votes.window_new is None else votes.window_new
     out = []
     for k, m in enumerate(members):
         cells = votes.grid.raster(m.polygon)
+        if within is not None:
+            cells = cells & within
         out.append(max(evidence_weight(old_w if k < n_old else new_w, cells), float(_weight(m))))
     return out
 
@@ -693,7 +700,10 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     if outweighed_by_wall(votes.window, votes.objects, g.raster(poly)):
         return None
     keeper = next((m for m in members if m.element_id == keep_id), members[0])
-    kind = weighted_kind([m.kind for m in members], evidence, keeper.kind)
+    # the kind of the fused rectangle goes by the evidence each shape holds over it: the part of a shape the refit
+    # rejected (a door shape twice the window's width, its other half wall) has no say in what the opening is
+    kind = weighted_kind([m.kind for m in members], _member_weights(members, n_old, votes, g.raster(poly)),
+                         keeper.kind)
     layered = [m for m in members if m.layer_id is not None]
     layer_id = max(layered, key=_weight).layer_id if layered else None
     campaigns = sorted({c for m in members for c in m.campaigns})
@@ -1008,42 +1018,108 @@ def _fuse_elements(stored: Facade, obs: Facade, layer_map: dict[int, int], votes
 _FRINGE_CELLS = 3  # wall within this many cells outside a side encloses it (a reveal's shadow fringe between)
 
 
+def _vote_extent(u: Element, votes: _Votes, max_area: float) -> tuple[tuple[int, int], tuple[int, int]]:
+    """Grid rows and columns [lo, hi) spanned by an unknown region and the window votes connected to it: a region
+    an earlier campaign stored over part of a hole (the strip its sampling missed) is often narrower than the
+    window a later campaign saw whole there, so its own bounds alone cannot hold the window's sides. The search
+    reaches as far as a window of ``max_area`` could (its side at most that many m² over the cell)."""
+    g = votes.grid
+    s_lo, t_lo, s_hi, t_hi = u.polygon.bounds
+    c0, c1, r0, r1 = g.line(s_lo, 0), g.line(s_hi, 0), g.line(t_lo, 1), g.line(t_hi, 1)
+    reach = math.ceil(math.sqrt(max_area) / g.cell)
+    pr0, pr1 = max(r0 - reach, 0), min(r1 + reach, g.shape[0])
+    pc0, pc1 = max(c0 - reach, 0), min(c1 + reach, g.shape[1])
+    patch = (slice(pr0, pr1), slice(pc0, pc1))
+    labels, _ = ndimage.label(net_votes(votes.window[patch], votes.objects[patch])[0] > 0)
+    touching = np.unique(labels[g.raster(u.polygon)[patch] & (labels > 0)])
+    rr, cc = np.nonzero(np.isin(labels, touching[touching > 0]))
+    if len(rr) == 0:
+        return (r0, r1), (c0, c1)
+    return ((min(r0, pr0 + int(rr.min())), max(r1, pr0 + int(rr.max()) + 1)),
+            (min(c0, pc0 + int(cc.min())), max(c1, pc0 + int(cc.max()) + 1)))
+
+
 def _enclosed_window(u: Element, votes: _Votes, fparams: FacadeParams,
                      params: RefineParams) -> tuple[Polygon, float] | None:
     """The window an unknown region holds on the fused votes, or ``None``: the rectangle over every grid line
-    within its bounds (± ``line_offsets``) minimising the weighted eq. (3), kept when ε <= ``max_window_uncertainty``,
-    its sides >= ``min_opening_size``, its area <= ``max_opening_area``, and when on each of its four sides at
-    least ``enclosed_wall_share`` of the cells just outside carry net wall weight (a window enclosed by wall; a
-    door reaching the ground or a hole running off the façade is not)."""
+    within the bounds of the region and of the window votes connected to it (± ``line_offsets``; :func:`_vote_extent`)
+    minimising the weighted eq. (3) (ties: the smallest), kept when ε <= ``max_window_uncertainty``, its sides >=
+    ``min_opening_size``, its area <= ``max_opening_area``, and when on each of its four sides at least
+    ``enclosed_wall_share`` of the cells just outside carry net wall weight (a window enclosed by wall; a door
+    reaching the ground or a hole running off the façade is not). A side failing that first grows across cells no
+    campaign voted on by at most ``enclosed_max_grow`` (a parapet hides the window's lower part) and is judged
+    there."""
     g = votes.grid
     off = params.line_offsets
     s_lo, t_lo, s_hi, t_hi = u.polygon.bounds
     if (s_hi - s_lo) * (t_hi - t_lo) > 2 * fparams.openings.max_opening_area:
         return None  # too wide to be mostly one window; and every line pair there would be costly
-    c_lo, c_hi = max(g.line(s_lo, 0) - off - 1, 0), min(g.line(s_hi, 0) + off + 1, g.shape[1])
-    r_lo, r_hi = max(g.line(t_lo, 1) - off - 1, 0), min(g.line(t_hi, 1) + off + 1, g.shape[0])
+    rows_, cols_ = _vote_extent(u, votes, fparams.openings.max_opening_area)
+    if (rows_[1] - rows_[0]) * (cols_[1] - cols_[0]) * g.cell ** 2 > 2 * fparams.openings.max_opening_area:
+        # the votes run into a neighbour or a larger hole: the region's own bounds
+        rows_, cols_ = (g.line(t_lo, 1), g.line(t_hi, 1)), (g.line(s_lo, 0), g.line(s_hi, 0))
+    c_lo, c_hi = max(cols_[0] - off - 1, 0), min(cols_[1] + off + 1, g.shape[1])
+    r_lo, r_hi = max(rows_[0] - off - 1, 0), min(rows_[1] + off + 1, g.shape[0])
     patch = (slice(r_lo, r_hi), slice(c_lo, c_hi))
     o = votes.objects[patch]
     w = _own_votes(votes.window[patch], o, g.raster(u.polygon)[patch])
-    rect, eps = refit_rectangle(w, o, range(1, c_hi - c_lo), range(1, r_hi - r_lo))
+    # ties (cells without votes weigh nothing) go to the smallest rectangle: the sides the votes support; a side
+    # hidden beyond the fringe grows below, up to the wall
+    rect, eps = refit_rectangle(w, o, range(1, c_hi - c_lo), range(1, r_hi - r_lo), np.zeros(w.shape))
     if rect is None or eps > params.max_window_uncertainty:
         return None
     r0, r1, c0, c1 = rect
-    size = (c1 - c0) * g.cell, (r1 - r0) * g.cell
+    wall = net_votes(votes.window, votes.objects)[1] > 0
+    unvoted = (votes.window == 0) & (votes.objects == 0)
+    rect = [r0 + r_lo, r1 + r_lo, c0 + c_lo, c1 + c_lo]  # R0, R1, C0, C1 on the façade's grid
+    for side in range(4):
+        if _side_enclosed(wall, rect, side) < params.enclosed_wall_share:
+            # a side hidden beyond the fringe (a balcony parapet in front of the window's lower part): it reaches
+            # across the cells no campaign voted on, up to the wall that encloses it
+            grown = _grown_side(unvoted, rect, side, round(params.enclosed_max_grow / g.cell))
+            trial = list(rect)
+            trial[side] = grown
+            if _side_enclosed(wall, trial, side) < params.enclosed_wall_share:
+                return None
+            rect = trial
+    R0, R1, C0, C1 = rect
+    size = (C1 - C0) * g.cell, (R1 - R0) * g.cell
     if min(size) < fparams.openings.min_opening_size or size[0] * size[1] > fparams.openings.max_opening_area:
         return None
-    wall = net_votes(votes.window, votes.objects)[1] > 0
-    R0, R1, C0, C1 = r0 + r_lo, r1 + r_lo, c0 + c_lo, c1 + c_lo  # on the façade's grid
-    reach = _FRINGE_CELLS
-    rows, cols = wall.shape
-    rings = [wall[R0:R1, max(C0 - reach, 0):C0].any(axis=1) if C0 > 0 else None,
-             wall[R0:R1, C1:C1 + reach].any(axis=1) if C1 < cols else None,
-             wall[max(R0 - reach, 0):R0, C0:C1].any(axis=0) if R0 > 0 else None,
-             wall[R1:R1 + reach, C0:C1].any(axis=0) if R1 < rows else None]
-    if any(ring is None or ring.mean() < params.enclosed_wall_share for ring in rings):
-        return None
-    poly = box(g.coord(c0 + c_lo, 0), g.coord(r0 + r_lo, 1), g.coord(c1 + c_lo, 0), g.coord(r1 + r_lo, 1))
+    poly = box(g.coord(C0, 0), g.coord(R0, 1), g.coord(C1, 0), g.coord(R1, 1))
     return poly, float(eps)
+
+
+def _side_enclosed(wall: np.ndarray, rect: list[int], side: int) -> float:
+    """Share of a rectangle's rows (left/right side) or columns (bottom/top) with net wall within ``_FRINGE_CELLS``
+    outside that side (``side``: 0 bottom, 1 top, 2 left, 3 right, as ``rect`` = [R0, R1, C0, C1]); 0 at the grid's
+    border."""
+    R0, R1, C0, C1 = rect
+    rows, cols = wall.shape
+    reach = _FRINGE_CELLS
+    if (side == 0 and R0 <= 0) or (side == 1 and R1 >= rows) or (side == 2 and C0 <= 0) or (side == 3 and C1 >= cols):
+        return 0.0
+    ring = [wall[max(R0 - reach, 0):R0, C0:C1].any(axis=0), wall[R1:R1 + reach, C0:C1].any(axis=0),
+            wall[R0:R1, max(C0 - reach, 0):C0].any(axis=1), wall[R0:R1, C1:C1 + reach].any(axis=1)][side]
+    return float(ring.mean()) if ring.size else 0.0
+
+
+def _grown_side(unvoted: np.ndarray, rect: list[int], side: int, max_cells: int) -> int:
+    """The side's grid line moved outwards across lines of which at least 90 % of the cells (over the rectangle's
+    span) carry no vote at all, by at most ``max_cells``."""
+    R0, R1, C0, C1 = rect
+    rows, cols = unvoted.shape
+    line = rect[side]
+    step = -1 if side in (0, 2) else 1
+    for _ in range(max_cells):
+        k = line - 1 if step < 0 else line  # the grid line just outside
+        if k < 0 or k >= (rows if side < 2 else cols):
+            break
+        cells = unvoted[k, C0:C1] if side < 2 else unvoted[R0:R1, k]
+        if cells.size == 0 or cells.mean() < 0.9:
+            break
+        line += step
+    return line
 
 
 def _promote_enclosed(objects: list[Element], unknown: list[Element], votes: _Votes, ids: _Ids,
