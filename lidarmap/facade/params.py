@@ -316,8 +316,11 @@ class OpeningParams:
         takes the height/width of the unoccluded windows in its column/row, across occluded cells only
         (paper §2.1: façade elements repeat); eq. (3) then counts the occluded cells it covers ...
     repetition_tol (0.2): ... the windows of a column (row) have both sides within this of each other.
-    complete_behind_structures (True): a window whose lower part a structure in front hides (a balcony parapet)
-        reaches down, across the occluded rows below it, to that structure's top (at most its own height again).
+    complete_behind_structures (True): a hole whose lower part a structure in front hides (a balcony parapet)
+        reaches down, across the occluded rows below it, to that structure's top; it is then a window when wall
+        closes the seen part on its other three sides, however little of it was seen ...
+    behind_structure_reach (2.0): ... at most this far down (metres; and at least the seen part's own height): a
+        street-level scanner sees only the top 0.3-0.5 m of a window 1.2-1.5 m tall above a balcony 1 m deep.
     hole_open_cells (1): holes are opened by a square of this radius (removes 1-2 cell fringes of unobserved
         wall along shadow edges).
     bridge_cells (2): hole parts separated by up to 2*bridge_cells occluded cells (a pole or trunk in front
@@ -357,6 +360,7 @@ class OpeningParams:
         "door_min_width": ">= 0",
         "open_door_max_width": ">= 0",
         "repetition_tol": ">= 0",
+        "behind_structure_reach": ">= 0",
         "min_unknown_area": ">= 0",
     }
 
@@ -391,6 +395,7 @@ class OpeningParams:
     recessed_windows: bool = False
     complete_by_repetition: bool = True
     complete_behind_structures: bool = True
+    behind_structure_reach: float = 2.0
     repetition_tol: float = 0.2
     min_unknown_area: float = 0.1
 
