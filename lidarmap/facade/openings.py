@@ -367,8 +367,9 @@ def structure_below(rect: tuple[int, int, int, int], values: np.ndarray, front: 
 
     The row below the rectangle must be mostly occluded; going down row by row while a row is not mostly
     observed (OBJECT), at most ``behind_structure_reach`` (and at least the rectangle's own height), the first
-    mostly observed row must be mostly ``front`` cells (a layer in front of the wall: a balcony, not the wall nor
-    a car's shadow reaching the ground). The rectangle then starts just above it."""
+    mostly observed row must be the top of a structure in front: in most columns a ``front`` cell (a layer in
+    front of the wall: a balcony, not the wall nor a car's shadow reaching the ground) in it or the two rows
+    below. The rectangle then starts just above it."""
     op = params.openings
     if not op.complete_behind_structures:
         return None
@@ -380,7 +381,9 @@ def structure_below(rect: tuple[int, int, int, int], values: np.ndarray, front: 
     k, stop = r0 - 1, max(r0 - reach, 0)
     while k >= stop and np.mean(values[k, across] == OBJECT) <= 0.5:
         k -= 1
-    if k < stop or np.mean(front[k, across]) < 0.5:
+    # the structure's top rows: a sparse campaign's scan lines hit the parapet's top in some cells of a row only
+    top = front[max(k - 2, 0):k + 1, across].any(axis=0)
+    if k < stop or np.mean(top) < 0.5:
         return None  # nothing observed within reach, or the wall itself: the window may end anywhere above it
     return k + 1 if k + 1 < r0 else None
 
