@@ -580,6 +580,28 @@ def test_local_wall_depth_per_scanner_head():
     assert np.abs(own[heads == 0] - 0.03).max() < 0.006 and np.abs(own[heads == 1] + 0.03).max() < 0.006
 
 
+def test_a_door_leaf_filling_one_block_is_not_a_heads_wall():
+    """A garage door 7 cm back fills the wall band of one 1 m block for one head, twice as many returns as the
+    wall there (hard dev seed 52, a low building): its front-most strong peak was the leaf, the leaf read as wall
+    on every scan line of that head and the door came out as two. The head's wall there is its neighbours'."""
+    from lidarmap.facade.evidence import local_wall_depth
+
+    rng = np.random.default_rng(1)
+    n = 2400
+    s = rng.uniform(0.0, 8.0, n)
+    heads = (np.arange(n) % 2).astype(np.int64)
+    d = np.where(heads == 1, -0.03, 0.03) + rng.normal(0.0, 0.003, n)  # two heads 6 cm apart (GPS drift)
+    leaf = (heads == 0) & (s >= 4.0) & (s < 5.0) & (rng.random(n) < 0.67)
+    d = np.where(leaf, 0.03 - 0.07 + rng.normal(0.0, 0.003, n), d)
+    sdt = np.column_stack([s, rng.uniform(0.0, 4.0, n), d])
+    params = FacadeParams()
+    own = local_wall_depth(sdt, 0.0, params, heads)
+    assert np.abs(own[heads == 0] - 0.03).max() < 0.006 and np.abs(own[heads == 1] + 0.03).max() < 0.006
+    # without the neighbours' check (the rule of round 5) the leaf is that head's wall in its block
+    alone = local_wall_depth(sdt, 0.0, params.updated(wall_neighbour_blocks=0), heads)
+    assert np.abs(alone[leaf] - (0.03 - 0.07)).max() < 0.01
+
+
 def test_crossed_heads_a_few_cm_apart_still_see_wall_and_window():
     """Two crossed heads that put the wall 6 cm apart: against one wall depth for both, the returns of one head lay
     behind it and read as pulses through the plane; here that made two false windows and ~14 m² of unknown

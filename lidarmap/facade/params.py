@@ -415,7 +415,9 @@ class EvidenceParams:
     wall_band (0.1), wall_block (1.0): the local wall depth is the median depth of the points within wall_band of
         the plane per wall_block metres along it (a wall bowing or drifting by cm is not glass).
     wall_mode_bin (0.005): with two crossed scanner heads, each head's wall per block is the front-most peak of a
-        histogram of its depths in bins of this size (m), smoothed over 5 bins (2.5 cm, about the range noise).
+        histogram of its depths in bins of this size (m), smoothed over 5 bins (2.5 cm, about the range noise) ...
+    wall_neighbour_blocks (2): ... and lies at most pass_depth behind the median of the head's walls in the blocks
+        within this many blocks of it (a garage door filling a block's wall band is no wall; 0: no such check).
     max_missed_pulses (150): longer runs of pulses without return in one scan line are not reconstructed (the
         line left the façade: sky, far away).
     missed_max_incidence_deg (75.0): pulses this grazing to the wall may return nothing from a wall: no evidence.
@@ -443,6 +445,7 @@ class EvidenceParams:
         "wall_band": "> 0",
         "wall_block": "> 0",
         "wall_mode_bin": "> 0",
+        "wall_neighbour_blocks": ">= 0",
         "max_missed_pulses": ">= 0",
         "missed_max_incidence_deg": "[0, 90]",
         "min_pass_pulses": ">= 1",
@@ -460,6 +463,7 @@ class EvidenceParams:
     wall_band: float = 0.1
     wall_block: float = 1.0
     wall_mode_bin: float = 0.005
+    wall_neighbour_blocks: int = 2
     max_missed_pulses: int = 150
     missed_max_incidence_deg: float = 75.0
     min_pass_pulses: int = 1
