@@ -18,6 +18,7 @@ votes against another's (:func:`vote_weights`).
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -137,7 +138,26 @@ def _block_mode(sdt: np.ndarray, s0: float, params: FacadeParams, members: np.nd
         groups, median, _ = _group_median(b_idx[close], d_near[close])
         mode[groups] = median
     mode[np.bincount(b_idx, minlength=len(uniq)) < 20] = np.nan
-    return _per_point(uniq, mode, block)
+    return _per_point(uniq, _not_behind_neighbours(uniq, mode, params), block)
+
+
+def _not_behind_neighbours(uniq: np.ndarray, mode: np.ndarray, params: FacadeParams) -> np.ndarray:
+    """A head's block walls, each at most ``pass_depth`` behind the median of the head's walls in the blocks within
+    ``wall_neighbour_blocks`` (itself included); where one lies farther back, that median. The GPS drift moves a
+    head's wall smoothly along the façade; a block whose wall band a door leaf a few cm back fills (a 2.8 m garage
+    door under a low eave, hard dev seed 52: leaf 7 cm back, twice the wall's returns) put its front-most strong
+    peak on the leaf, and the leaf read as wall on every scan line of that head."""
+    k = params.evidence.wall_neighbour_blocks
+    if k <= 0 or len(uniq) < 2:
+        return mode
+    pos = np.searchsorted(uniq, uniq[:, None] + np.arange(-k, k + 1)[None, :])
+    pos = np.clip(pos, 0, len(uniq) - 1)
+    near = np.where(uniq[pos] == uniq[:, None] + np.arange(-k, k + 1)[None, :], mode[pos], np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a block whose neighbours all lack a wall: NaN stays
+        ref = np.nanmedian(near, axis=1)
+    behind = np.isfinite(mode) & np.isfinite(ref) & (mode < ref - params.evidence.pass_depth)
+    return np.where(behind, ref, mode)
 
 
 def _fill_sensors(sensors: np.ndarray, gps: np.ndarray) -> np.ndarray:

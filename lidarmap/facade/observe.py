@@ -75,7 +75,6 @@ from lidarmap.facade.openings import (
     OBJECT,
     OCCLUDED,
     Opening,
-    complete_behind_structures,
     complete_by_repetition,
     detect_openings,
     fit_rectangle,
@@ -591,16 +590,14 @@ def _hole_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: F
         if vis.behind is not None:
             not_wall[inside] |= vis.behind[on_main][inside] & (vis.values[row[inside], col[inside]] == HOLE)
         wall_st = wall_st[~not_wall]
+    front = np.zeros(surf.shape, dtype=bool)  # cells of layers in front of the wall: balconies, their parapets
+    for li, layer in enumerate(surf.layers):
+        if layer.mu - surf.main.mu > params.layers.structure_min_offset:
+            front |= surf.dominant == li
     openings = detect_openings(vis.values, cell, params, ground_t=vis.ground_t, t0=t0, s0=s0, wall_st=wall_st,
-                               opaque=vis.opaque)
+                               opaque=vis.opaque, front=front)
     if params.openings.complete_by_repetition:
         complete_by_repetition(openings, vis.values, s0, t0, cell, params)
-    if params.openings.complete_behind_structures:
-        front = np.zeros(surf.shape, dtype=bool)
-        for li, layer in enumerate(surf.layers):
-            if layer.mu - surf.main.mu > params.layers.structure_min_offset:
-                front |= surf.dominant == li
-        complete_behind_structures(openings, vis.values, front, s0, t0, cell, params)
     for op in openings:
         if op.kind in (ElementKind.WINDOW, ElementKind.DOOR) and op.bounds is not None:
             b_s0, b_s1, b_t0, b_t1 = op.bounds

@@ -232,7 +232,8 @@ def refine_bounds(rect: tuple[int, int, int, int], wall_st: np.ndarray | None, s
 
 def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
                     ground_t: np.ndarray | None = None, t0: float = 0.0, s0: float = 0.0,
-                    wall_st: np.ndarray | None = None, opaque: np.ndarray | None = None) -> list[Opening]:
+                    wall_st: np.ndarray | None = None, opaque: np.ndarray | None = None,
+                    front: np.ndarray | None = None) -> list[Opening]:
     """Classify every hole region of a value grid (see :func:`hole_regions` and the module doc).
 
     * fewer hole cells than ``min_hole_area``: ignored (sampling gaps);
@@ -244,6 +245,10 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
       façade t, default: the grid's bottom edge ``t0``; ``opaque``: share of passing pulses back from just behind):
       DOOR;
     * otherwise WINDOW with the fitted rectangle and its eq. (3) ε_w (bridged occluded cells count as 0).
+
+    With ``front`` (cells of a layer in front of the wall: balconies) a hole whose rows below are occluded down to
+    such a structure reaches down to its top (:func:`structure_below`); its seen part then needs wall on its other
+    three sides only (the occluded side is the structure's shadow) and no minimum height of its own.
 
     The grid's lower-left corner is (``s0``, ``t0``); ``wall_st`` (the main layer's points, (s, t)) places the
     rectangles' sides below the cell size (:func:`refine_bounds`); sizes and the door test use those sides,
@@ -285,19 +290,29 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
             continue
         rect, _ = fit_rectangle(region, work, params)
         # eq. (3) on this opening alone: other holes and the bridged cells are neither hole nor object
-        eps = window_uncertainty_eq3(np.where(mask, HOLE, np.where(region | (work == HOLE), OCCLUDED, work)), rect)
+        local = np.where(mask, HOLE, np.where(region | (work == HOLE), OCCLUDED, work))
+        eps = window_uncertainty_eq3(local, rect)
+        seen_rect = rect
+        low = structure_below(rect, work, front, cell, params) if front is not None else None
+        if low is not None:  # the parapet's shadow hides the lower part: the window reaches down to its top
+            rect = (low, rect[1], rect[2], rect[3])
         bounds = refine_bounds(rect, wall_st, s0, t0, cell, params)
         # sizes count inside the façade only: a sliver under the eave is not a window reaching above the roof
         bounds = (max(bounds[0], s0), min(bounds[1], s0 + cols * cell), max(bounds[2], t0),
                   min(bounds[3], t0 + rows * cell))
         width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
-        hidden = occ_border > params.openings.occlusion_touch_max and not enclosed_by_wall(work, rect, params)
+        if low is not None:  # the shadow explains the occluded side; wall must close the seen part's others
+            hidden = not enclosed_by_wall(work, seen_rect, params, sides=(True, True, False, True))
+        else:
+            hidden = occ_border > params.openings.occlusion_touch_max and not enclosed_by_wall(work, rect, params)
         if hidden or eps > params.openings.max_window_uncertainty \
                 or min(width, height) < params.openings.min_opening_size:
-            unknown.rect = rect if hidden else None
+            unknown.rect = seen_rect if hidden else None
             out.append(unknown)
             continue
         kind = door_or_window(bounds, float(np.mean(ground[rect[2]:rect[3]])), mask, opaque, params)
+        if low is not None:
+            eps = window_uncertainty_eq3(local, rect)  # the occluded rows it now covers count
         out.append(Opening(kind, mask, rect, eps, fill, occ_border, n_cells, region, bounds))
     below_floor_level(out, ground, params)
     return out
@@ -327,11 +342,13 @@ def below_floor_level(openings: list[Opening], ground: np.ndarray, params: Facad
     return done
 
 
-def enclosed_by_wall(values: np.ndarray, rect: tuple[int, int, int, int], params: FacadeParams) -> bool:
-    """Whether wall (OBJECT cells) was observed beyond every side of a rectangle (r0, r1, c0, c1): within
-    ``enclosed_reach_cells`` outside the side, along at least half of its length. A hole whose border is mostly
-    occluded (shadow fringes of reveals and frames at grazing incidence, the ends of scan lines) but that wall
-    closes on all four sides is a whole opening, not the visible part of one that continues behind an occluder."""
+def enclosed_by_wall(values: np.ndarray, rect: tuple[int, int, int, int], params: FacadeParams,
+                     sides: tuple[bool, bool, bool, bool] = (True, True, True, True)) -> bool:
+    """Whether wall (OBJECT cells) was observed beyond every side of a rectangle (r0, r1, c0, c1) that ``sides``
+    (left, right, below, above) names: within ``enclosed_reach_cells`` outside the side, along at least half of
+    its length. A hole whose border is mostly occluded (shadow fringes of reveals and frames at grazing
+    incidence, the ends of scan lines) but that wall closes on all four sides is a whole opening, not the
+    visible part of one that continues behind an occluder."""
     k = params.openings.enclosed_reach_cells
     if k <= 0:
         return False
@@ -339,7 +356,36 @@ def enclosed_by_wall(values: np.ndarray, rect: tuple[int, int, int, int], params
     wall = values == OBJECT
     bands = (wall[r0:r1, max(c0 - k, 0):c0], wall[r0:r1, c1:c1 + k],  # left, right: per row
              wall[max(r0 - k, 0):r0, c0:c1].T, wall[r1:r1 + k, c0:c1].T)  # below, above: per column
-    return all(b.shape[0] > 0 and b.shape[1] > 0 and float(b.any(axis=1).mean()) >= 0.5 for b in bands)
+    return all(b.shape[0] > 0 and b.shape[1] > 0 and float(b.any(axis=1).mean()) >= 0.5
+               for b, side in zip(bands, sides) if side)
+
+
+def structure_below(rect: tuple[int, int, int, int], values: np.ndarray, front: np.ndarray, cell: float,
+                    params: FacadeParams) -> int | None:
+    """The row a hole's rectangle (r0, r1, c0, c1) reaches down to when a structure in front hides its lower part
+    (the parapet of a balcony under a French window, seen from a scanner below it), else ``None``.
+
+    The row below the rectangle must be mostly occluded; going down row by row while a row is not mostly
+    observed (OBJECT), at most ``behind_structure_reach`` (and at least the rectangle's own height), the first
+    mostly observed row must be the top of a structure in front: in most columns a ``front`` cell (a layer in
+    front of the wall: a balcony, not the wall nor a car's shadow reaching the ground) in it or the two rows
+    below. The rectangle then starts just above it."""
+    op = params.openings
+    if not op.complete_behind_structures:
+        return None
+    r0, r1, c0, c1 = rect
+    across = slice(c0, c1)
+    if r0 < 1 or c1 - c0 < 2 or np.mean(values[r0 - 1, across] == OCCLUDED) < 0.5:
+        return None
+    reach = max(r1 - r0, round(op.behind_structure_reach / cell))
+    k, stop = r0 - 1, max(r0 - reach, 0)
+    while k >= stop and np.mean(values[k, across] == OBJECT) <= 0.5:
+        k -= 1
+    # the structure's top rows: a sparse campaign's scan lines hit the parapet's top in some cells of a row only
+    top = front[max(k - 2, 0):k + 1, across].any(axis=0)
+    if k < stop or np.mean(top) < 0.5:
+        return None  # nothing observed within reach, or the wall itself: the window may end anywhere above it
+    return k + 1 if k + 1 < r0 else None
 
 
 def door_or_window(bounds: tuple[float, float, float, float], ground: float, mask: np.ndarray,
@@ -447,28 +493,19 @@ def complete_behind_structures(openings: list[Opening], values: np.ndarray, fron
     """Windows whose lower part a structure in front hides (the parapet of a balcony under a French window): the
     bottom side moves down across the occluded rows below it to the top of that structure, in place.
 
-    A window qualifies when the row below its rectangle is mostly occluded; its bottom then moves down row by row
-    while a row is not mostly observed (OBJECT), at most by the window's own height, and only when the first
-    mostly observed row is mostly ``front`` cells (a layer in front of the wall: a balcony, not the wall or a car's
-    shadow reaching the ground). Its uncertainty is eq. (3) of the grown rectangle. Returns how many changed.
+    The rule of :func:`structure_below`, for windows found without ``front`` (:func:`detect_openings` applies it
+    when given ``front``, to partly hidden holes too). Its uncertainty is eq. (3) of the grown rectangle. Returns
+    how many changed.
     """
     values = np.asarray(values)
     done = 0
     for op in openings:
         if op.kind is not ElementKind.WINDOW or op.bounds is None or op.rect is None:
             continue
-        r0, r1, c0, c1 = op.rect
-        across = slice(c0, c1)
-        if r0 < 1 or c1 - c0 < 2 or np.mean(values[r0 - 1, across] == OCCLUDED) < 0.5:
+        new_r0 = structure_below(op.rect, values, front, cell, params)
+        if new_r0 is None:
             continue
-        k, stop = r0 - 1, max(r0 - (r1 - r0), 0)
-        while k >= stop and np.mean(values[k, across] == OBJECT) <= 0.5:
-            k -= 1
-        if k < stop or np.mean(front[k, across]) < 0.5:
-            continue  # nothing observed within reach, or the wall itself: the window may end anywhere above it
-        new_r0 = k + 1
-        if new_r0 >= r0:
-            continue
+        r1, c0, c1 = op.rect[1:]
         local = np.where(op.mask, HOLE, np.where(values == HOLE, OCCLUDED, values))
         op.rect = (new_r0, r1, c0, c1)
         op.bounds = (op.bounds[0], op.bounds[1], t0 + new_r0 * cell, op.bounds[3])

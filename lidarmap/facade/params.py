@@ -316,8 +316,11 @@ class OpeningParams:
         takes the height/width of the unoccluded windows in its column/row, across occluded cells only
         (paper §2.1: façade elements repeat); eq. (3) then counts the occluded cells it covers ...
     repetition_tol (0.2): ... the windows of a column (row) have both sides within this of each other.
-    complete_behind_structures (True): a window whose lower part a structure in front hides (a balcony parapet)
-        reaches down, across the occluded rows below it, to that structure's top (at most its own height again).
+    complete_behind_structures (True): a hole whose lower part a structure in front hides (a balcony parapet)
+        reaches down, across the occluded rows below it, to that structure's top; it is then a window when wall
+        closes the seen part on its other three sides, however little of it was seen ...
+    behind_structure_reach (2.0): ... at most this far down (metres; and at least the seen part's own height): a
+        street-level scanner sees only the top 0.3-0.5 m of a window 1.2-1.5 m tall above a balcony 1 m deep.
     hole_open_cells (1): holes are opened by a square of this radius (removes 1-2 cell fringes of unobserved
         wall along shadow edges).
     bridge_cells (2): hole parts separated by up to 2*bridge_cells occluded cells (a pole or trunk in front
@@ -357,6 +360,7 @@ class OpeningParams:
         "door_min_width": ">= 0",
         "open_door_max_width": ">= 0",
         "repetition_tol": ">= 0",
+        "behind_structure_reach": ">= 0",
         "min_unknown_area": ">= 0",
     }
 
@@ -391,6 +395,7 @@ class OpeningParams:
     recessed_windows: bool = False
     complete_by_repetition: bool = True
     complete_behind_structures: bool = True
+    behind_structure_reach: float = 2.0
     repetition_tol: float = 0.2
     min_unknown_area: float = 0.1
 
@@ -410,7 +415,9 @@ class EvidenceParams:
     wall_band (0.1), wall_block (1.0): the local wall depth is the median depth of the points within wall_band of
         the plane per wall_block metres along it (a wall bowing or drifting by cm is not glass).
     wall_mode_bin (0.005): with two crossed scanner heads, each head's wall per block is the front-most peak of a
-        histogram of its depths in bins of this size (m), smoothed over 5 bins (2.5 cm, about the range noise).
+        histogram of its depths in bins of this size (m), smoothed over 5 bins (2.5 cm, about the range noise) ...
+    wall_neighbour_blocks (2): ... and lies at most pass_depth behind the median of the head's walls in the blocks
+        within this many blocks of it (a garage door filling a block's wall band is no wall; 0: no such check).
     max_missed_pulses (150): longer runs of pulses without return in one scan line are not reconstructed (the
         line left the façade: sky, far away).
     missed_max_incidence_deg (75.0): pulses this grazing to the wall may return nothing from a wall: no evidence.
@@ -438,6 +445,7 @@ class EvidenceParams:
         "wall_band": "> 0",
         "wall_block": "> 0",
         "wall_mode_bin": "> 0",
+        "wall_neighbour_blocks": ">= 0",
         "max_missed_pulses": ">= 0",
         "missed_max_incidence_deg": "[0, 90]",
         "min_pass_pulses": ">= 1",
@@ -455,6 +463,7 @@ class EvidenceParams:
     wall_band: float = 0.1
     wall_block: float = 1.0
     wall_mode_bin: float = 0.005
+    wall_neighbour_blocks: int = 2
     max_missed_pulses: int = 150
     missed_max_incidence_deg: float = 75.0
     min_pass_pulses: int = 1
