@@ -590,10 +590,12 @@ def _hole_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: F
         if vis.behind is not None:
             not_wall[inside] |= vis.behind[on_main][inside] & (vis.values[row[inside], col[inside]] == HOLE)
         wall_st = wall_st[~not_wall]
-    front = np.zeros(surf.shape, dtype=bool)  # cells of layers in front of the wall: balconies, their parapets
-    for li, layer in enumerate(surf.layers):
-        if layer.mu - surf.main.mu > params.layers.structure_min_offset:
-            front |= surf.dominant == li
+    front = None  # cells of layers in front of the wall (balconies, their parapets): only the parapet rule reads them
+    if params.openings.complete_behind_structures:
+        front = np.zeros(surf.shape, dtype=bool)
+        for li, layer in enumerate(surf.layers):
+            if layer.mu - surf.main.mu > params.layers.structure_min_offset:
+                front |= surf.dominant == li
     openings = detect_openings(vis.values, cell, params, ground_t=vis.ground_t, t0=t0, s0=s0, wall_st=wall_st,
                                opaque=vis.opaque, front=front)
     if params.openings.complete_by_repetition:

@@ -346,18 +346,35 @@ def enclosed_by_wall(values: np.ndarray, rect: tuple[int, int, int, int], params
                      sides: tuple[bool, bool, bool, bool] = (True, True, True, True)) -> bool:
     """Whether wall (OBJECT cells) was observed beyond every side of a rectangle (r0, r1, c0, c1) that ``sides``
     (left, right, below, above) names: within ``enclosed_reach_cells`` outside the side, along at least half of
-    its length. A hole whose border is mostly occluded (shadow fringes of reveals and frames at grazing
-    incidence, the ends of scan lines) but that wall closes on all four sides is a whole opening, not the
-    visible part of one that continues behind an occluder."""
+    its length (:func:`side_wall_share`). A hole whose border is mostly occluded (shadow fringes of reveals and
+    frames at grazing incidence, the ends of scan lines) but that wall closes on all four sides is a whole opening,
+    not the visible part of one that continues behind an occluder."""
     k = params.openings.enclosed_reach_cells
     if k <= 0:
         return False
-    r0, r1, c0, c1 = rect
     wall = values == OBJECT
-    bands = (wall[r0:r1, max(c0 - k, 0):c0], wall[r0:r1, c1:c1 + k],  # left, right: per row
-             wall[max(r0 - k, 0):r0, c0:c1].T, wall[r1:r1 + k, c0:c1].T)  # below, above: per column
-    return all(b.shape[0] > 0 and b.shape[1] > 0 and float(b.any(axis=1).mean()) >= 0.5
-               for b, side in zip(bands, sides) if side)
+    # sides named (left, right, below, above); side_wall_share numbers them as rect's lines (below, above, ...)
+    return all(side_wall_share(wall, rect, side, k) >= 0.5
+               for side, named in zip((2, 3, 0, 1), sides) if named)
+
+
+def side_wall_share(wall: np.ndarray, rect: tuple[int, int, int, int] | list[int], side: int, reach: int) -> float:
+    """Share of the rows (left/right side) or columns (below/above) of a rectangle ``rect`` = (r0, r1, c0, c1) with
+    a ``wall`` cell within ``reach`` cells outside one side; ``side`` indexes ``rect``'s line: 0 below, 1 above,
+    2 left, 3 right. 0 at the grid's border or for an empty side. Shared by detection and the map's fusion."""
+    r0, r1, c0, c1 = rect
+    rows, cols = wall.shape
+    if (side == 0 and r0 <= 0) or (side == 1 and r1 >= rows) or (side == 2 and c0 <= 0) or (side == 3 and c1 >= cols):
+        return 0.0
+    if side == 0:
+        band = wall[max(r0 - reach, 0):r0, c0:c1].any(axis=0)
+    elif side == 1:
+        band = wall[r1:r1 + reach, c0:c1].any(axis=0)
+    elif side == 2:
+        band = wall[r0:r1, max(c0 - reach, 0):c0].any(axis=1)
+    else:
+        band = wall[r0:r1, c1:c1 + reach].any(axis=1)
+    return float(band.mean()) if band.size else 0.0
 
 
 def structure_below(rect: tuple[int, int, int, int], values: np.ndarray, front: np.ndarray, cell: float,

@@ -79,7 +79,7 @@ from lidarmap.facade.model import (
     Layer,
 )
 from lidarmap.facade.observe import building_facades, layer_fit, observe_facade
-from lidarmap.facade.openings import box_sums, integral_image
+from lidarmap.facade.openings import box_sums, integral_image, side_wall_share
 from lidarmap.facade.params import FacadeParams
 from lidarmap.facade.planes import fit_line_2d, footprint_edges
 from lidarmap.map.model import Building, BuildingMap, RoofPlane
@@ -1073,13 +1073,13 @@ def _enclosed_window(u: Element, votes: _Votes, fparams: FacadeParams,
     unvoted = (votes.window == 0) & (votes.objects == 0)
     rect = [r0 + r_lo, r1 + r_lo, c0 + c_lo, c1 + c_lo]  # R0, R1, C0, C1 on the façade's grid
     for side in range(4):
-        if _side_enclosed(wall, rect, side) < params.enclosed_wall_share:
+        if side_wall_share(wall, rect, side, _FRINGE_CELLS) < params.enclosed_wall_share:
             # a side hidden beyond the fringe (a balcony parapet in front of the window's lower part): it reaches
             # across the cells no campaign voted on, up to the wall that encloses it
             grown = _grown_side(unvoted, rect, side, round(params.enclosed_max_grow / g.cell))
             trial = list(rect)
             trial[side] = grown
-            if _side_enclosed(wall, trial, side) < params.enclosed_wall_share:
+            if side_wall_share(wall, trial, side, _FRINGE_CELLS) < params.enclosed_wall_share:
                 return None
             rect = trial
     R0, R1, C0, C1 = rect
@@ -1088,20 +1088,6 @@ def _enclosed_window(u: Element, votes: _Votes, fparams: FacadeParams,
         return None
     poly = box(g.coord(C0, 0), g.coord(R0, 1), g.coord(C1, 0), g.coord(R1, 1))
     return poly, float(eps)
-
-
-def _side_enclosed(wall: np.ndarray, rect: list[int], side: int) -> float:
-    """Share of a rectangle's rows (left/right side) or columns (bottom/top) with net wall within ``_FRINGE_CELLS``
-    outside that side (``side``: 0 bottom, 1 top, 2 left, 3 right, as ``rect`` = [R0, R1, C0, C1]); 0 at the grid's
-    border."""
-    R0, R1, C0, C1 = rect
-    rows, cols = wall.shape
-    reach = _FRINGE_CELLS
-    if (side == 0 and R0 <= 0) or (side == 1 and R1 >= rows) or (side == 2 and C0 <= 0) or (side == 3 and C1 >= cols):
-        return 0.0
-    ring = [wall[max(R0 - reach, 0):R0, C0:C1].any(axis=0), wall[R1:R1 + reach, C0:C1].any(axis=0),
-            wall[R0:R1, max(C0 - reach, 0):C0].any(axis=1), wall[R0:R1, C1:C1 + reach].any(axis=1)][side]
-    return float(ring.mean()) if ring.size else 0.0
 
 
 def _grown_side(unvoted: np.ndarray, rect: list[int], side: int, max_cells: int) -> int:
