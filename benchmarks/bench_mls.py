@@ -11,7 +11,7 @@
    campaign, the estimated path's error against the true sensor positions, buildings found.
 3. **Scale**: one campaign of about ``--big-points`` points (denser profiles) as PLY with origins: one update, timed.
 
-Prints one markdown section. Uses dev seeds only (7001-7020 are reserved for evaluation).
+Prints one markdown section. Uses dev seeds only (7001-7030 are reserved for evaluation).
 """
 
 from __future__ import annotations

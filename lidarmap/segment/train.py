@@ -46,6 +46,8 @@ class TrainParams:
     """Training of ``lidarmap segment train`` (``[segment_train]`` table). Defaults follow the paper (sec. 3.2).
 
     seed (0): seeds block sampling, augmentation, weight initialisation, dropout and the validation split.
+    split_seed (-1): seeds the validation split instead of ``seed`` when >= 0, so that models trained with
+        different seeds are validated on the same squares (and can be compared on validation, not on held-out data).
     epochs (64): passes; an epoch is ``blocks_per_epoch`` random blocks.
     batch_size (32): blocks per optimiser step.
     learning_rate (0.01), weight_decay (1e-4): Adam.
@@ -74,6 +76,7 @@ class TrainParams:
     section = "segment_train"
     constraints: ClassVar[dict[str, str]] = {
         "seed": ">= 0",
+        "split_seed": ">= -1",
         "epochs": ">= 0",
         "batch_size": ">= 0",
         "learning_rate": ">= 0",
@@ -97,6 +100,7 @@ class TrainParams:
     }
 
     seed: int = 0
+    split_seed: int = -1
     epochs: int = 64
     batch_size: int = 32
     learning_rate: float = 0.01
@@ -174,7 +178,7 @@ def covered_area(xy: np.ndarray) -> float:
 def split_clouds(clouds: list[tuple[str, PointCloud]], params: TrainParams
                  ) -> tuple[list[tuple[str, PointCloud]], list[tuple[str, PointCloud]]]:
     """Seeded spatial train/validation split of every cloud (whole ``split_cell`` squares)."""
-    rng = np.random.default_rng([params.seed, 1])
+    rng = np.random.default_rng([params.seed if params.split_seed < 0 else params.split_seed, 1])
     train, val = [], []
     for name, cloud in clouds:
         mask = spatial_split(cloud.xyz[:, :2], params.split_cell, params.val_fraction, rng)
