@@ -495,3 +495,19 @@ def test_spatial_split_holds_whole_cells_out_and_nothing_at_fraction_zero():
     assert all(len(set(val[keys == k])) == 1 for k in np.unique(keys))  # whole squares on one side
     assert 1 <= len(np.unique(keys[val])) <= len(np.unique(keys)) - 1
     assert not spatial_split(xy, 32.0, 0.0, np.random.default_rng(0)).any()  # 0: train on everything
+
+
+def test_split_seed_gives_models_of_different_seeds_the_same_validation_squares():
+    from lidarmap.segment.train import split_clouds
+
+    xy = np.random.default_rng(3).uniform(0, 200, size=(4000, 2))
+    cloud = PointCloud(np.column_stack([xy, np.zeros(len(xy))]), attrs={"classification": np.full(len(xy), 2)})
+
+    def validation(**kw) -> set:
+        _, val = split_clouds([("a", cloud)], TrainParams(**kw))
+        return set(map(tuple, val[0][1].xyz[:, :2].round(6)))
+
+    assert validation(seed=2, split_seed=1) == validation(seed=1) == validation(seed=5, split_seed=1)
+    assert validation(seed=2) != validation(seed=1)  # without it, each seed draws its own squares
+    with pytest.raises(ValueError, match="split_seed"):
+        TrainParams(split_seed=-2)
