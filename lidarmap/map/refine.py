@@ -781,10 +781,19 @@ def _refit_stored(e: Element, votes: _Votes, params: RefineParams) -> tuple[Poly
     return box(sides[0], sides[2], sides[1], sides[3]), float(eps)
 
 
+def _holds_an_opening(support: np.ndarray, cell: float, min_size: float) -> bool:
+    """Whether an opening's support (the cells some campaign saw as opening) covers at least the smallest opening
+    the detection reports (``min_size`` squared): a tie between the campaigns that found it and one that read it
+    as wall keeps such a stored opening -- a later campaign does not undo a found window on no more evidence than
+    it had -- while a smaller patch is no evidence of an opening by itself and goes."""
+    return float(support.sum()) * cell * cell >= min_size * min_size - 1e-9
+
+
 def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size: float = 0.0) -> Element | None:
     """A stored window/door the new campaign saw but did not find: ``None`` when the wall evidence (all campaigns so
-    far) over its support -- the cells of it some campaign saw as opening -- is at least its opening evidence
-    there (no support: :func:`outweighed_by_wall` over all of it); otherwise kept, its sides refitted on the fused
+    far) over its support -- the cells of it some campaign saw as opening -- exceeds its opening evidence there,
+    or equals it on a support smaller than an opening (:func:`_holds_an_opening`; no support:
+    :func:`outweighed_by_wall` over all of it); otherwise kept, its sides refitted on the fused
     votes (:func:`_refit_stored`) and its ε recomputed there. A large ε alone does not drop it: a door leaf one
     campaign reads as wall scan line by scan line leaves a striped vote map whose ε is high while the opening
     evidence still outweighs the wall's. A refit that keeps less than ``refit_keep_share`` of the opening evidence is
@@ -796,13 +805,13 @@ def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size:
         return e
     # existence is judged on the opening's support, the cells some campaign saw as opening: wall strips a stored
     # rectangle too wide holds (a shutter, a reveal, the frame) say its sides are off, not that it is not there --
-    # every later campaign adds wall votes to them, and they alone used to outweigh a well-observed opening. On
-    # the support a tie is no majority for the opening.
+    # every later campaign adds wall votes to them, and they alone used to outweigh a well-observed opening.
     support = cells & (votes.window > 0)
     if not support.any():
         return None if outweighed_by_wall(votes.window, votes.objects, cells) else e
     opening = float(votes.window[support].sum())
-    if float(votes.objects[support].sum()) >= opening:
+    wall = float(votes.objects[support].sum())
+    if wall > opening or (wall == opening and not _holds_an_opening(support, g.cell, min_size)):
         return None
     refit = _refit_stored(e, votes, params)
     if refit is None:
