@@ -744,3 +744,53 @@ def test_a_stored_window_a_later_campaign_reads_as_wall_with_the_same_weight_sta
         assert [e.element_id for e in fused] == ([3] if kept else []), (window.bounds, wall_weight)
         if kept:
             assert fused[0].polygon.equals_exact(window, 1e-9), fused[0].polygon.bounds
+
+
+def test_a_window_verdict_from_a_shape_too_short_for_a_door_does_not_retype_a_door_sized_opening():
+    """Issue 18 round 7 (dev seed 104 b8 f0, a flush door 2.06 m tall): campaign 1 found the door; campaign 2 found
+    the same opening 1.94 m tall, 1 cm below door_min_height, so its detection typed it a window whatever the
+    ground said, and with more window evidence it retyped the fused opening (2.03 m tall) a window. That shape's
+    verdict came from its size alone, which the fused rectangle no longer has: it does not vote, the door stays.
+    A window shape of a door's size (typed by the ground line) still outvotes the door, and without the door
+    sizes (``door_size=None``) every shape votes as before."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    door = box(1.0, 0.4, 2.4, 2.5)
+    stored = [Element(3, ElementKind.DOOR, door, None, 0.1, campaigns=[1])]
+    sizes = (1.95, 0.7, 3.5)
+    for shape, door_size, kind in ((box(1.0, 0.5, 2.4, 2.44), sizes, ElementKind.DOOR),
+                                   (box(1.0, 0.5, 2.4, 2.44), None, ElementKind.WINDOW),
+                                   (box(1.0, 0.45, 2.4, 2.5), sizes, ElementKind.WINDOW)):
+        new = [Element(0, ElementKind.WINDOW, shape, None, 0.05, campaigns=[2])]
+        old_w, new_w = grid.raster(door).astype(int), 2 * grid.raster(shape).astype(int)
+        objects = 2 * (~grid.raster(door) & ~grid.raster(shape)).astype(int)
+        votes = _Votes(grid, old_w + new_w, objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
+                       np.ones(grid.shape, bool), window_new=new_w)
+        fused, _ = _fuse_openings(stored, new, votes, _Ids(stored + new), RefineParams(), (0.0, 4.0, 0.0, 4.0), [],
+                                  0.45, door_size)
+        assert [(e.element_id, e.kind) for e in fused] == [(3, kind)], (shape.bounds, door_size)
+        assert fused[0].polygon.bounds[3] - fused[0].polygon.bounds[1] >= 1.95
+
+
+def test_an_enclosed_opening_of_a_door_size_at_the_facade_bottom_is_promoted_a_door():
+    """Issue 18 round 7 (dev seed 108 b6 f2, a door 2.4 m tall starting 0.17 m above the façade's bottom): the
+    campaigns saw wall below it (a threshold, the pavement's edge), so the fused votes enclose it and the unknown
+    region became a window. A door-sized enclosed opening starting within door_bottom_tol of the façade's bottom
+    is a door; the same hole on a 1 m sill, or a small one at the bottom, stays a window."""
+    from lidarmap.facade.params import FacadeParams
+    from lidarmap.map.refine import _Grid, _Ids, _promote_enclosed, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (60, 40))
+    for hole, kind in ((box(1.0, 0.2, 2.0, 2.6), ElementKind.DOOR), (box(1.0, 1.0, 2.0, 3.4), ElementKind.WINDOW),
+                       (box(1.0, 0.2, 2.0, 1.2), ElementKind.WINDOW)):
+        cells = grid.raster(hole)
+        votes = _Votes(grid, 2 * cells.astype(int), 2 * (~cells).astype(int), np.full(grid.shape, 2),
+                       np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=cells.astype(int))
+        s0, t0, s1, t1 = hole.bounds
+        u = Element(7, ElementKind.UNKNOWN, box(s0 + 0.1, t0 + 0.1, s1 - 0.1, t1 - 0.1), None, math.inf,
+                    campaigns=[1])
+        objects, unknown = _promote_enclosed([], [u], votes, _Ids([u]), FacadeParams(), RefineParams(),
+                                             campaign_id=2)
+        assert unknown == [] and [(e.kind, e.element_id) for e in objects] == [(kind, 8)], hole.bounds
+        assert polygon_iou(objects[0].polygon, hole) >= 0.9, objects[0].polygon.bounds
