@@ -728,20 +728,26 @@ def test_a_stored_window_a_later_campaign_reads_as_wall_with_the_same_weight_sta
     cell); campaign 2, also a grazing view, read every cell of them as wall with weight 1 and found nothing. On the
     support the votes tie exactly and the old rule ("a tie is no majority") dropped three correct windows. A later
     campaign does not undo a found window on no more evidence than it had: the tie keeps it. A tie over a patch
-    smaller than the smallest opening (a hole in a cornice band, dev seed 102) still drops it, and wall seen with
-    more weight than the opening's drops it as before."""
+    smaller than the smallest opening (a hole in a cornice band, dev seed 102) or one filling less than Ta of the
+    rectangle (a patchy stripe, dev seed 112) still drops it, and wall seen with more weight than the opening's
+    drops it as before."""
     from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
 
     grid = _Grid(0.0, 0.0, 0.1, (40, 40))
-    for window, wall_weight, kept in ((box(1.0, 1.0, 2.0, 3.0), 1, True), (box(1.0, 1.0, 1.4, 1.4), 1, False),
-                                      (box(1.0, 1.0, 2.0, 3.0), 2, False)):
+    patchy = (np.arange(40) % 2 == 0)[:, None]  # every other row unvoted: fills half of the rectangle (< Ta)
+    for window, seen_open, wall_weight, kept in ((box(1.0, 1.0, 2.0, 3.0), True, 1, True),
+                                                 (box(1.0, 1.0, 1.4, 1.4), True, 1, False),
+                                                 (box(1.0, 1.0, 2.0, 3.0), patchy, 1, False),
+                                                 (box(1.0, 1.0, 2.0, 3.0), True, 2, False)):
         cells = grid.raster(window)
-        objects = (~cells).astype(int) + wall_weight * cells  # campaign 1: wall around it; campaign 2: wall on it
-        votes = _Votes(grid, cells.astype(int), objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
+        support = cells & seen_open
+        objects = (~cells).astype(int) + wall_weight * support  # campaign 1: wall around it; campaign 2: on it
+        votes = _Votes(grid, support.astype(int), objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
                        np.ones(grid.shape, bool), window_new=np.zeros(grid.shape, int))
         stored = [Element(3, ElementKind.WINDOW, window, None, 0.2, campaigns=[1])]
-        fused, _ = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), (0.0, 4.0, 0.0, 4.0), [], 0.45)
-        assert [e.element_id for e in fused] == ([3] if kept else []), (window.bounds, wall_weight)
+        fused, _ = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), (0.0, 4.0, 0.0, 4.0), [], 0.45,
+                                  None, 0.7)
+        assert [e.element_id for e in fused] == ([3] if kept else []), (window.bounds, support.sum(), wall_weight)
         if kept:
             assert fused[0].polygon.equals_exact(window, 1e-9), fused[0].polygon.bounds
 

@@ -804,15 +804,19 @@ def _refit_stored(e: Element, votes: _Votes, params: RefineParams) -> tuple[Poly
     return box(sides[0], sides[2], sides[1], sides[3]), float(eps)
 
 
-def _holds_an_opening(support: np.ndarray, cell: float, min_size: float) -> bool:
-    """Whether an opening's support (the cells some campaign saw as opening) covers at least the smallest opening
-    the detection reports (``min_size`` squared): a tie between the campaigns that found it and one that read it
-    as wall keeps such a stored opening -- a later campaign does not undo a found window on no more evidence than
-    it had -- while a smaller patch is no evidence of an opening by itself and goes."""
-    return float(support.sum()) * cell * cell >= min_size * min_size - 1e-9
+def _holds_an_opening(support: np.ndarray, cells: np.ndarray, cell: float, min_size: float, min_fill: float) -> bool:
+    """Whether an opening's support (the cells some campaign saw as opening) is an opening by the detection's own
+    measures: at least the smallest opening (``min_size`` squared) and filling at least ``min_fill`` (``Ta``) of
+    the stored rectangle's ``cells``. A tie between the campaigns that found such an opening and one that read it
+    as wall keeps it -- a later campaign does not undo a found window on no more evidence than it had -- while a
+    small or patchy support is no evidence of an opening by itself and goes (dev seeds 102, 112: a hole in a
+    cornice band, a patchy stripe on a narrow side wall)."""
+    n = float(support.sum())
+    return n * cell * cell >= min_size * min_size - 1e-9 and n >= min_fill * float(cells.sum()) - 1e-9
 
 
-def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size: float = 0.0) -> Element | None:
+def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size: float = 0.0,
+                      min_fill: float = 0.0) -> Element | None:
     """A stored window/door the new campaign saw but did not find: ``None`` when the wall evidence (all campaigns so
     far) over its support -- the cells of it some campaign saw as opening -- exceeds its opening evidence there,
     or equals it on a support smaller than an opening (:func:`_holds_an_opening`; no support:
@@ -834,7 +838,7 @@ def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size:
         return None if outweighed_by_wall(votes.window, votes.objects, cells) else e
     opening = float(votes.window[support].sum())
     wall = float(votes.objects[support].sum())
-    if wall > opening or (wall == opening and not _holds_an_opening(support, g.cell, min_size)):
+    if wall > opening or (wall == opening and not _holds_an_opening(support, cells, g.cell, min_size, min_fill)):
         return None
     refit = _refit_stored(e, votes, params)
     if refit is None:
@@ -866,18 +870,20 @@ def _unknown_bounds(shapes: list[Element], unknown: list[Element]) -> np.ndarray
 def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _Ids, params: RefineParams,
                    extent: tuple[float, float, float, float],
                    unknown: list[Element] | None = None, min_size: float = 0.0,
-                   door_size: tuple[float, float, float] | None = None) -> tuple[list[Element], set[int]]:
+                   door_size: tuple[float, float, float] | None = None,
+                   min_fill: float = 0.0) -> tuple[list[Element], set[int]]:
     """Windows and doors after the fusion, and the ids of those that changed (merged, added or re-scored). A new
     shape without a stored match may take the sides of a stored ``unknown`` region it lies in
     (:func:`_unknown_bounds`); a fused shape with a side below ``min_size`` is dropped. ``door_size``: the
-    detection's door size limits (:func:`_kind_voters`; ``None``: every matched shape votes on the kind)."""
+    detection's door size limits (:func:`_kind_voters`; ``None``: every matched shape votes on the kind);
+    ``min_fill``: the detection's ``Ta`` (:func:`_holds_an_opening`)."""
     out: list[Element] = []
     changed: set[int] = set()
     for oi, ni in _clusters(old, new, lambda e: "opening", params):
         olds, news = [old[i] for i in oi], [new[j] for j in ni]
         if not news:
             for e in olds:
-                rescored = _rescored_opening(e, votes, params, min_size)
+                rescored = _rescored_opening(e, votes, params, min_size, min_fill)
                 if rescored is not None:
                     out.append(rescored)
                     if rescored is not e:
@@ -892,7 +898,7 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
             changed.add(keep_id)
             continue
         for e in olds:  # the new shape is voted down: the stored ones stay unless the fused votes now drop them
-            rescored = _rescored_opening(e, votes, params, min_size)
+            rescored = _rescored_opening(e, votes, params, min_size, min_fill)
             if rescored is not None:
                 out.append(rescored)
                 if rescored is not e:
@@ -1040,7 +1046,7 @@ def _fuse_elements(stored: Facade, obs: Facade, layer_map: dict[int, int], votes
                                        obs.extent, [e for e in stored.elements if e.is_unknown],
                                        fparams.openings.min_opening_size,
                                        (fparams.openings.door_min_height, fparams.openings.door_min_width,
-                                        fparams.openings.door_max_width))
+                                        fparams.openings.door_max_width), fparams.openings.Ta)
     min_area = fparams.objects.min_object_area
     structures, changed_s = _fuse_structures(of(stored.elements, ElementKind.STRUCTURE),
                                              of(new, ElementKind.STRUCTURE), votes, ids, params, min_area)
