@@ -616,7 +616,8 @@ def test_a_stored_door_one_later_campaign_reads_as_wall_with_no_more_weight_stay
     wall with the same weight on 7 scan lines of 8 and found nothing. Over the stored rectangle the frame's wall
     votes tipped the sum and the door was dropped; over its support (the cells seen as opening) the opening
     evidence is larger and it stays, unchanged (the refit, on the few lines left, would keep too little of it).
-    A campaign seeing wall there with twice the weight, or with the same weight on every scan line, drops it."""
+    A campaign seeing wall there with twice the weight drops it; with the same weight on every scan line the votes
+    tie and the door stays (issue 18 round 7: a tie keeps a stored opening whose support holds an opening)."""
     from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
 
     grid = _Grid(0.0, 0.0, 0.1, (40, 40))
@@ -624,7 +625,7 @@ def test_a_stored_door_one_later_campaign_reads_as_wall_with_no_more_weight_stay
     cells = grid.raster(leaf)
     stored = [Element(3, ElementKind.DOOR, stored_box, None, 0.3, campaigns=[1])]
     missed_lines = (np.arange(40) % 8 == 0)[:, None]  # campaign 2 saw the leaf as wall on 7 scan lines of 8
-    for wall, kept in ((cells & ~missed_lines, True), (cells, False), (2 * cells, False)):
+    for wall, kept in ((cells & ~missed_lines, True), (cells, True), (2 * cells, False)):
         objects = (~cells).astype(int) + wall.astype(int) + (grid.raster(stored_box) & ~cells)
         votes = _Votes(grid, cells.astype(int), objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
                        np.ones(grid.shape, bool), window_new=np.zeros(grid.shape, int))
@@ -720,3 +721,101 @@ def test_the_type_of_a_fused_opening_goes_by_the_evidence_over_the_fused_rectang
                                   0.45)
         assert [(e.element_id, e.kind) for e in fused] == [(3, kind)], new_weight
         assert polygon_iou(fused[0].polygon, window) >= 0.9, fused[0].polygon.bounds
+
+
+def test_a_stored_window_a_later_campaign_reads_as_wall_with_the_same_weight_stays():
+    """Issue 18 round 7 (dev seed 101 b7 f1, three curtain windows): campaign 1 found each window (weight 1 per
+    cell); campaign 2, also a grazing view, read every cell of them as wall with weight 1 and found nothing. On the
+    support the votes tie exactly and the old rule ("a tie is no majority") dropped three correct windows. A later
+    campaign does not undo a found window on no more evidence than it had: the tie keeps it. A tie over a patch
+    smaller than the smallest opening (a hole in a cornice band, dev seed 102) or one filling less than Ta of the
+    rectangle (a patchy stripe, dev seed 112) still drops it, and wall seen with more weight than the opening's
+    drops it as before."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    patchy = (np.arange(40) % 2 == 0)[:, None]  # every other row unvoted: fills half of the rectangle (< Ta)
+    for window, seen_open, wall_weight, kept in ((box(1.0, 1.0, 2.0, 3.0), True, 1, True),
+                                                 (box(1.0, 1.0, 1.4, 1.4), True, 1, False),
+                                                 (box(1.0, 1.0, 2.0, 3.0), patchy, 1, False),
+                                                 (box(1.0, 1.0, 2.0, 3.0), True, 2, False)):
+        cells = grid.raster(window)
+        support = cells & seen_open
+        objects = (~cells).astype(int) + wall_weight * support  # campaign 1: wall around it; campaign 2: on it
+        votes = _Votes(grid, support.astype(int), objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
+                       np.ones(grid.shape, bool), window_new=np.zeros(grid.shape, int))
+        stored = [Element(3, ElementKind.WINDOW, window, None, 0.2, campaigns=[1])]
+        fused, _ = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), (0.0, 4.0, 0.0, 4.0), [], 0.45,
+                                  None, 0.7)
+        assert [e.element_id for e in fused] == ([3] if kept else []), (window.bounds, support.sum(), wall_weight)
+        if kept:
+            assert fused[0].polygon.equals_exact(window, 1e-9), fused[0].polygon.bounds
+
+
+def test_a_window_verdict_from_a_shape_too_short_for_a_door_does_not_retype_a_door_sized_opening():
+    """Issue 18 round 7 (dev seed 104 b8 f0, a flush door 2.06 m tall): campaign 1 found the door; campaign 2 found
+    the same opening 1.94 m tall, 1 cm below door_min_height, so its detection typed it a window whatever the
+    ground said, and with more window evidence it retyped the fused opening (2.03 m tall) a window. That shape's
+    verdict came from its size alone, which the fused rectangle no longer has: it does not vote, the door stays.
+    A window shape of a door's size (typed by the ground line) still outvotes the door, and without the door
+    sizes (``door_size=None``) every shape votes as before."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    door = box(1.0, 0.4, 2.4, 2.5)
+    stored = [Element(3, ElementKind.DOOR, door, None, 0.1, campaigns=[1])]
+    sizes = (1.95, 0.7, 3.5)
+    for shape, door_size, kind in ((box(1.0, 0.5, 2.4, 2.44), sizes, ElementKind.DOOR),
+                                   (box(1.0, 0.5, 2.4, 2.44), None, ElementKind.WINDOW),
+                                   (box(1.0, 0.45, 2.4, 2.5), sizes, ElementKind.WINDOW)):
+        new = [Element(0, ElementKind.WINDOW, shape, None, 0.05, campaigns=[2])]
+        old_w, new_w = grid.raster(door).astype(int), 2 * grid.raster(shape).astype(int)
+        objects = 2 * (~grid.raster(door) & ~grid.raster(shape)).astype(int)
+        votes = _Votes(grid, old_w + new_w, objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
+                       np.ones(grid.shape, bool), window_new=new_w)
+        fused, _ = _fuse_openings(stored, new, votes, _Ids(stored + new), RefineParams(), (0.0, 4.0, 0.0, 4.0), [],
+                                  0.45, door_size)
+        assert [(e.element_id, e.kind) for e in fused] == [(3, kind)], (shape.bounds, door_size)
+        assert fused[0].polygon.bounds[3] - fused[0].polygon.bounds[1] >= 1.95
+
+
+def test_an_enclosed_opening_of_a_door_size_at_the_facade_bottom_is_promoted_a_door():
+    """Issue 18 round 7 (dev seed 108 b6 f2, a door 2.4 m tall starting 0.17 m above the façade's bottom): the
+    campaigns saw wall below it (a threshold, the pavement's edge), so the fused votes enclose it and the unknown
+    region became a window. A door-sized enclosed opening starting within door_bottom_tol of the façade's bottom
+    is a door; the same hole on a 1 m sill, or a small one at the bottom, stays a window."""
+    from lidarmap.facade.params import FacadeParams
+    from lidarmap.map.refine import _Grid, _Ids, _promote_enclosed, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (60, 40))
+    for hole, kind in ((box(1.0, 0.2, 2.0, 2.6), ElementKind.DOOR), (box(1.0, 1.0, 2.0, 3.4), ElementKind.WINDOW),
+                       (box(1.0, 0.2, 2.0, 1.2), ElementKind.WINDOW)):
+        cells = grid.raster(hole)
+        votes = _Votes(grid, 2 * cells.astype(int), 2 * (~cells).astype(int), np.full(grid.shape, 2),
+                       np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=cells.astype(int))
+        s0, t0, s1, t1 = hole.bounds
+        u = Element(7, ElementKind.UNKNOWN, box(s0 + 0.1, t0 + 0.1, s1 - 0.1, t1 - 0.1), None, math.inf,
+                    campaigns=[1])
+        objects, unknown = _promote_enclosed([], [u], votes, _Ids([u]), FacadeParams(), RefineParams(),
+                                             campaign_id=2)
+        assert unknown == [] and [(e.kind, e.element_id) for e in objects] == [(kind, 8)], hole.bounds
+        assert polygon_iou(objects[0].polygon, hole) >= 0.9, objects[0].polygon.bounds
+
+
+def test_a_found_window_refitted_below_an_opening_size_keeps_its_stored_rectangle():
+    """Issue 18 round 7 (dev seed 110 b4 f0, a curtain window 0.58 m wide that three campaigns found): on the fused
+    votes its refit is 0.42 m wide, below min_opening_size (0.45), and the sliver rule dropped it -- the refit
+    said the window is narrower, not that it is not there. The stored rectangle stays; a stored rectangle that is
+    itself a sliver still goes."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    core = grid.raster(box(1.1, 1.0, 1.5, 3.0))  # 0.4 m of it seen as opening, a 0.2 m strip of it as wall
+    votes = _Votes(grid, 2 * core.astype(int), 2 * (~core).astype(int), np.full(grid.shape, 2),
+                   np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=np.zeros(grid.shape, int))
+    for stored_box, kept in ((box(0.9, 1.0, 1.5, 3.0), True), (box(1.1, 1.0, 1.5, 3.0), False)):
+        stored = [Element(3, ElementKind.WINDOW, stored_box, None, 0.1, campaigns=[1, 2])]
+        fused, _ = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), (0.0, 4.0, 0.0, 4.0), [], 0.45)
+        assert [e.element_id for e in fused] == ([3] if kept else []), stored_box.bounds
+        if kept:
+            assert fused[0].polygon.equals_exact(stored_box, 1e-9), fused[0].polygon.bounds

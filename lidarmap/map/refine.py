@@ -641,14 +641,16 @@ def _member_weights(members: list[Element], n_old: int, votes: _Votes, within: n
 
 def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: RefineParams,
                    extent: tuple[float, float, float, float], n_old: int = 0,
-                   extra_bounds: np.ndarray | None = None, min_size: float = 0.0) -> Element | None:
+                   extra_bounds: np.ndarray | None = None, min_size: float = 0.0,
+                   door_size: tuple[float, float, float] | None = None) -> Element | None:
     """One window/door from matched shapes: vote-map refit over their edge lines, sub-cell sides averaged over the
     shapes that proposed the chosen line (weighted by campaigns), kind by evidence-weighted vote
     (:func:`weighted_kind`; the first ``n_old`` members are stored shapes). ``None`` when the fused ε exceeds
     ``max_window_uncertainty`` or the wall evidence over it outweighs its opening evidence
     (:func:`outweighed_by_wall`). ``extra_bounds`` (rows of s_lo, t_lo, s_hi, t_hi): more candidate sides, from
     stored unknown regions the shapes lie in. ``None`` too when a side of the fused rectangle, cut to the extent,
-    is shorter than ``min_size``."""
+    is shorter than ``min_size``. ``door_size`` (min height, min width, max width of a door): see
+    :func:`_kind_voters`."""
     g = votes.grid
     off = params.line_offsets
     bounds = np.array([[*m.polygon.bounds] for m in members])  # minx (s_lo), miny (t_lo), maxx (s_hi), maxy (t_hi)
@@ -702,13 +704,34 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     keeper = next((m for m in members if m.element_id == keep_id), members[0])
     # the kind of the fused rectangle goes by the evidence each shape holds over it: the part of a shape the refit
     # rejected (a door shape twice the window's width, its other half wall) has no say in what the opening is
-    kind = weighted_kind([m.kind for m in members], _member_weights(members, n_old, votes, g.raster(poly)),
-                         keeper.kind)
+    evidence_over = _member_weights(members, n_old, votes, g.raster(poly))
+    votes_on_kind = [(m.kind, w) for m, w, v in zip(members, evidence_over, _kind_voters(members, poly, door_size))
+                     if v]
+    kind = weighted_kind([k for k, _ in votes_on_kind], [w for _, w in votes_on_kind], keeper.kind)
     layered = [m for m in members if m.layer_id is not None]
     layer_id = max(layered, key=_weight).layer_id if layered else None
     campaigns = sorted({c for m in members for c in m.campaigns})
     return Element(element_id=keep_id, kind=kind, polygon=poly, layer_id=layer_id, uncertainty=float(eps),
                    n_points=int(sum(m.n_points for m in members)), campaigns=campaigns)
+
+
+def _door_sized(polygon, door_size: tuple[float, float, float]) -> bool:
+    """Whether a rectangle has a door's size: at least ``door_size[0]`` tall, ``door_size[1]`` to ``door_size[2]``
+    wide (the detection's ``door_min_height``, ``door_min_width``, ``door_max_width``)."""
+    s0, t0, s1, t1 = polygon.bounds
+    return t1 - t0 >= door_size[0] - 1e-9 and door_size[1] - 1e-9 <= s1 - s0 <= door_size[2] + 1e-9
+
+
+def _kind_voters(members: list[Element], fused, door_size: tuple[float, float, float] | None) -> list[bool]:
+    """Which matched shapes vote on the kind of the fused rectangle ``fused``. A shape typed window whose own
+    rectangle has no door's size was a window by its size alone (the detection types such shapes windows before
+    it looks at the ground): once the fused rectangle has a door's size and another shape saw a door there, that
+    verdict no longer applies and it does not vote (issue 18 round 7, dev seed 104: a flush door 2.03 m tall
+    that one campaign measured 1.94 m, 1 cm below ``door_min_height``, became a window)."""
+    if door_size is None or not _door_sized(fused, door_size) \
+            or not any(m.kind is ElementKind.DOOR for m in members):
+        return [True] * len(members)
+    return [m.kind is not ElementKind.WINDOW or _door_sized(m.polygon, door_size) for m in members]
 
 
 def _own_votes(w: np.ndarray, o: np.ndarray, claimed: np.ndarray, kept_ties: np.ndarray | None = None) -> np.ndarray:
@@ -781,28 +804,41 @@ def _refit_stored(e: Element, votes: _Votes, params: RefineParams) -> tuple[Poly
     return box(sides[0], sides[2], sides[1], sides[3]), float(eps)
 
 
-def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size: float = 0.0) -> Element | None:
+def _holds_an_opening(support: np.ndarray, cells: np.ndarray, cell: float, min_size: float, min_fill: float) -> bool:
+    """Whether an opening's support (the cells some campaign saw as opening) is an opening by the detection's own
+    measures: at least the smallest opening (``min_size`` squared) and filling at least ``min_fill`` (``Ta``) of
+    the stored rectangle's ``cells``. A tie between the campaigns that found such an opening and one that read it
+    as wall keeps it -- a later campaign does not undo a found window on no more evidence than it had -- while a
+    small or patchy support is no evidence of an opening by itself and goes (dev seeds 102, 112: a hole in a
+    cornice band, a patchy stripe on a narrow side wall)."""
+    n = float(support.sum())
+    return n * cell * cell >= min_size * min_size - 1e-9 and n >= min_fill * float(cells.sum()) - 1e-9
+
+
+def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size: float = 0.0,
+                      min_fill: float = 0.0) -> Element | None:
     """A stored window/door the new campaign saw but did not find: ``None`` when the wall evidence (all campaigns so
-    far) over its support -- the cells of it some campaign saw as opening -- is at least its opening evidence
-    there (no support: :func:`outweighed_by_wall` over all of it); otherwise kept, its sides refitted on the fused
+    far) over its support -- the cells of it some campaign saw as opening -- exceeds its opening evidence there,
+    or equals it on a support smaller than an opening (:func:`_holds_an_opening`; no support:
+    :func:`outweighed_by_wall` over all of it); otherwise kept, its sides refitted on the fused
     votes (:func:`_refit_stored`) and its ε recomputed there. A large ε alone does not drop it: a door leaf one
     campaign reads as wall scan line by scan line leaves a striped vote map whose ε is high while the opening
     evidence still outweighs the wall's. A refit that keeps less than ``refit_keep_share`` of the opening evidence is
-    not used: the stored rectangle stays; ``None`` when a refit keeping more leaves a side shorter than ``min_size``
-    (a sliver is no opening)."""
+    not used: the stored rectangle stays; so does one keeping more that leaves a side shorter than ``min_size``,
+    unless the stored rectangle is such a sliver itself (then ``None``: a sliver is no opening)."""
     g = votes.grid
     cells = g.raster(e.polygon)
     if not cells.any() or votes.seen_new[cells].astype(bool).mean() < params.seen_fraction:
         return e
     # existence is judged on the opening's support, the cells some campaign saw as opening: wall strips a stored
     # rectangle too wide holds (a shutter, a reveal, the frame) say its sides are off, not that it is not there --
-    # every later campaign adds wall votes to them, and they alone used to outweigh a well-observed opening. On
-    # the support a tie is no majority for the opening.
+    # every later campaign adds wall votes to them, and they alone used to outweigh a well-observed opening.
     support = cells & (votes.window > 0)
     if not support.any():
         return None if outweighed_by_wall(votes.window, votes.objects, cells) else e
     opening = float(votes.window[support].sum())
-    if float(votes.objects[support].sum()) >= opening:
+    wall = float(votes.objects[support].sum())
+    if wall > opening or (wall == opening and not _holds_an_opening(support, cells, g.cell, min_size, min_fill)):
         return None
     refit = _refit_stored(e, votes, params)
     if refit is None:
@@ -811,11 +847,14 @@ def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size:
     b = poly.bounds
     # a refit that keeps less than half of the opening evidence has not found the opening's sides but the patch
     # the new campaign happened not to read as wall (a door leaf seen as wall but a strip): the stored rectangle
-    # stays; one that keeps most of it and is a sliver is no opening
+    # stays. One that keeps most of it but narrows it below an opening's size has not shown that the opening is
+    # smaller than one: the stored rectangle stays too (issue 18 round 7, dev seed 110: a curtain window 0.58 m
+    # wide that three campaigns saw, refitted 0.42 m wide, was dropped as a sliver); a stored sliver goes
     if float(votes.window[support & g.raster(poly)].sum()) < params.refit_keep_share * opening:
         return e
     if min(b[2] - b[0], b[3] - b[1]) < min_size:
-        return None
+        sb = e.polygon.bounds
+        return e if min(sb[2] - sb[0], sb[3] - sb[1]) >= min_size else None
     return dataclasses.replace(e, polygon=poly, uncertainty=eps)
 
 
@@ -830,17 +869,21 @@ def _unknown_bounds(shapes: list[Element], unknown: list[Element]) -> np.ndarray
 
 def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _Ids, params: RefineParams,
                    extent: tuple[float, float, float, float],
-                   unknown: list[Element] | None = None, min_size: float = 0.0) -> tuple[list[Element], set[int]]:
+                   unknown: list[Element] | None = None, min_size: float = 0.0,
+                   door_size: tuple[float, float, float] | None = None,
+                   min_fill: float = 0.0) -> tuple[list[Element], set[int]]:
     """Windows and doors after the fusion, and the ids of those that changed (merged, added or re-scored). A new
     shape without a stored match may take the sides of a stored ``unknown`` region it lies in
-    (:func:`_unknown_bounds`); a fused shape with a side below ``min_size`` is dropped."""
+    (:func:`_unknown_bounds`); a fused shape with a side below ``min_size`` is dropped. ``door_size``: the
+    detection's door size limits (:func:`_kind_voters`; ``None``: every matched shape votes on the kind);
+    ``min_fill``: the detection's ``Ta`` (:func:`_holds_an_opening`)."""
     out: list[Element] = []
     changed: set[int] = set()
     for oi, ni in _clusters(old, new, lambda e: "opening", params):
         olds, news = [old[i] for i in oi], [new[j] for j in ni]
         if not news:
             for e in olds:
-                rescored = _rescored_opening(e, votes, params, min_size)
+                rescored = _rescored_opening(e, votes, params, min_size, min_fill)
                 if rescored is not None:
                     out.append(rescored)
                     if rescored is not e:
@@ -849,13 +892,13 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
         keep_id = _keeper(olds).element_id if olds else ids()
         extra = None if olds or not unknown else _unknown_bounds(news, unknown)
         merged = _merge_opening(olds + news, keep_id, votes, params, extent, n_old=len(olds), extra_bounds=extra,
-                                min_size=min_size)
+                                min_size=min_size, door_size=door_size)
         if merged is not None:
             out.append(merged)
             changed.add(keep_id)
             continue
         for e in olds:  # the new shape is voted down: the stored ones stay unless the fused votes now drop them
-            rescored = _rescored_opening(e, votes, params, min_size)
+            rescored = _rescored_opening(e, votes, params, min_size, min_fill)
             if rescored is not None:
                 out.append(rescored)
                 if rescored is not e:
@@ -1001,7 +1044,9 @@ def _fuse_elements(stored: Facade, obs: Facade, layer_map: dict[int, int], votes
 
     openings, changed = _fuse_openings(of(stored.elements, *OPENINGS), of(new, *OPENINGS), votes, ids, params,
                                        obs.extent, [e for e in stored.elements if e.is_unknown],
-                                       fparams.openings.min_opening_size)
+                                       fparams.openings.min_opening_size,
+                                       (fparams.openings.door_min_height, fparams.openings.door_min_width,
+                                        fparams.openings.door_max_width), fparams.openings.Ta)
     min_area = fparams.objects.min_object_area
     structures, changed_s = _fuse_structures(of(stored.elements, ElementKind.STRUCTURE),
                                              of(new, ElementKind.STRUCTURE), votes, ids, params, min_area)
@@ -1108,13 +1153,25 @@ def _grown_side(unvoted: np.ndarray, rect: list[int], side: int, max_cells: int)
     return line
 
 
+def _enclosed_kind(rect, bottom: float, fparams: FacadeParams) -> ElementKind:
+    """Door or window for an enclosed opening the fused votes found: a door when it has a door's size
+    (:func:`_door_sized`) and starts within ``door_bottom_tol`` of the façade's bottom ``bottom`` (the extent's
+    lowest line: the ground the wall stands on; the map keeps no ground profile). A threshold or the pavement's
+    edge seen as wall below a door encloses it like a sill (issue 18 round 7, dev seed 108: a door 2.4 m tall
+    starting 0.17 m above the façade's bottom was promoted a window)."""
+    op = fparams.openings
+    tall = _door_sized(rect, (op.door_min_height, op.door_min_width, op.door_max_width))
+    return ElementKind.DOOR if tall and rect.bounds[1] <= bottom + op.door_bottom_tol else ElementKind.WINDOW
+
+
 def _promote_enclosed(objects: list[Element], unknown: list[Element], votes: _Votes, ids: _Ids,
                       fparams: FacadeParams, params: RefineParams,
                       campaign_id: int) -> tuple[list[Element], list[Element]]:
     """Unknown regions the new campaign saw (>= ``seen_fraction`` of their cells) that the fused votes show as a
     window enclosed by wall (:func:`_enclosed_window`) become windows: each campaign alone saw part of the border
     hidden or unobserved (a side wall at a slant), together they saw it whole. Not where the window would overlap
-    an opening, or hold less than half of the region."""
+    an opening, or hold less than half of the region. One of a door's size that starts at the façade's bottom is a
+    door (:func:`_enclosed_kind`)."""
     g = votes.grid
     openings = [e.polygon for e in objects if e.kind in OPENINGS]
     kept: list[Element] = []
@@ -1130,8 +1187,9 @@ def _promote_enclosed(objects: list[Element], unknown: list[Element], votes: _Vo
         if found is None:
             kept.append(u)
             continue
-        objects.append(Element(element_id=ids(), kind=ElementKind.WINDOW, polygon=found[0], layer_id=None,
-                               uncertainty=found[1], n_points=0, campaigns=sorted(set(u.campaigns) | {campaign_id})))
+        objects.append(Element(element_id=ids(), kind=_enclosed_kind(found[0], g.t0, fparams), polygon=found[0],
+                               layer_id=None, uncertainty=found[1], n_points=0,
+                               campaigns=sorted(set(u.campaigns) | {campaign_id})))
         openings.append(found[0])
     return objects, kept
 
