@@ -285,7 +285,9 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         touches_edge = c0 == 0 or c1 == cols or r1 == rows
         area = int(region_sizes[lab]) * cell * cell
         unknown = Opening(ElementKind.UNKNOWN, mask, None, math.inf, fill, occ_border, n_cells, region)
-        if touches_edge or area > params.openings.max_opening_area or fill < params.openings.Ta:
+        if touches_edge or area > params.openings.max_opening_area or not (
+                fill >= params.openings.Ta or fill >= params.openings.Ta_enclosed
+                and enclosed_by_wall(work, (r0, r1, c0, c1), params)):
             out.append(unknown)
             continue
         rect, _ = fit_rectangle(region, work, params)

@@ -266,6 +266,10 @@ class OpeningParams:
     Ta (0.7): fill ratio (hole cells / bounding-box cells) above which a hole is a window candidate. A
         rectangle has ~1 (0.8-0.95 with jagged sampled edges), an arched window ~0.9, a circle 0.785; L-shaped or
         diagonal leftovers of shadows score ≤ 0.6-0.75.
+    Ta_enclosed (0.55): ... a hole with a lower fill ratio, down to this, is a candidate too when observed wall
+        closes its bounding box on all four sides (:func:`enclosed_by_wall`): a narrow window's jagged edges
+        (one cell of 5-7) or a shadow's corner inside it cost more than 0.3 of its box, and wall around it says
+        the box is the opening. Set it to Ta to turn this off.
     min_hole_area (0.12): smaller holes are sampling gaps.
     max_opening_area (16.0): larger holes are UNKNOWN.
     min_opening_size (0.45): windows/doors narrower or lower than this are UNKNOWN (the visible corner of a
@@ -332,6 +336,7 @@ class OpeningParams:
 
     constraints: ClassVar[dict[str, str]] = {
         "Ta": "(0, 1]",
+        "Ta_enclosed": "(0, 1]",
         "min_hole_area": ">= 0",
         "max_opening_area": ">= 0",
         "min_opening_size": ">= 0",
@@ -365,6 +370,7 @@ class OpeningParams:
     }
 
     Ta: float = 0.7
+    Ta_enclosed: float = 0.55
     min_hole_area: float = 0.12
     max_opening_area: float = 16.0
     min_opening_size: float = 0.45
