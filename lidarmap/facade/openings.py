@@ -287,7 +287,8 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         unknown = Opening(ElementKind.UNKNOWN, mask, None, math.inf, fill, occ_border, n_cells, region)
         if touches_edge or area > params.openings.max_opening_area or not (
                 fill >= params.openings.Ta or fill >= params.openings.Ta_enclosed
-                and enclosed_by_wall(work, (r0, r1, c0, c1), params)):
+                and enclosed_by_wall(work, (r0, r1, c0, c1), params, sides=_sides(r0, c0, c1, ground, t0, cell,
+                                                                                   params))):
             out.append(unknown)
             continue
         rect, _ = fit_rectangle(region, work, params)
@@ -306,7 +307,8 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         if low is not None:  # the shadow explains the occluded side; wall must close the seen part's others
             hidden = not enclosed_by_wall(work, seen_rect, params, sides=(True, True, False, True))
         else:
-            hidden = occ_border > params.openings.occlusion_touch_max and not enclosed_by_wall(work, rect, params)
+            hidden = occ_border > params.openings.occlusion_touch_max and not enclosed_by_wall(
+                work, rect, params, sides=_sides(rect[0], rect[2], rect[3], ground, t0, cell, params))
         if hidden or eps > params.openings.max_window_uncertainty \
                 or min(width, height) < params.openings.min_opening_size:
             unknown.rect = seen_rect if hidden else None
@@ -318,6 +320,16 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         out.append(Opening(kind, mask, rect, eps, fill, occ_border, n_cells, region, bounds))
     below_floor_level(out, ground, params)
     return out
+
+
+def _sides(r0: int, c0: int, c1: int, ground: np.ndarray, t0: float, cell: float,
+           params: FacadeParams) -> tuple[bool, bool, bool, bool]:
+    """The sides (left, right, below, above) of a box starting at row ``r0`` over columns [c0, c1) that wall must
+    close for :func:`enclosed_by_wall`: not the one below when ``ground_encloses`` and the box starts within
+    ``door_bottom_tol`` of the ground line (a door has pavement below it, no wall)."""
+    op = params.openings
+    at_ground = op.ground_encloses and t0 + r0 * cell <= float(np.mean(ground[c0:c1])) + op.door_bottom_tol
+    return (True, True, not at_ground, True)
 
 
 def below_floor_level(openings: list[Opening], ground: np.ndarray, params: FacadeParams) -> int:

@@ -281,6 +281,9 @@ class OpeningParams:
     enclosed_reach_cells (4): ... and a hole whose rectangle has observed wall within this many cells beyond
         each of its four sides (along half of each side at least) is a whole opening however much of its border
         is occluded (shadow fringes of reveals at grazing incidence).
+    ground_encloses (True): ... the side below a box that starts within door_bottom_tol of the ground line
+        needs no wall (a door has the pavement below it: its border was the shadow fringe of its reveals on
+        three sides and the ground on the fourth, never "enclosed"); also for Ta_enclosed.
     canny_sigma (1.0): Canny smoothing (cells).
     hough_lines (6): Hough peaks per orientation.
     hough_max_tilt_deg (2.0), hough_angle_steps (2): near-vertical/horizontal angles tried.
@@ -377,6 +380,7 @@ class OpeningParams:
     max_window_uncertainty: float = 0.5
     occlusion_touch_max: float = 0.6
     enclosed_reach_cells: int = 4
+    ground_encloses: bool = True
     canny_sigma: float = 1.0
     hough_lines: int = 6
     hough_max_tilt_deg: float = 2.0
