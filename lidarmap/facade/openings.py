@@ -299,7 +299,8 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         low = structure_below(rect, work, front, cell, params) if front is not None else None
         if low is not None:  # the parapet's shadow hides the lower part: the window reaches down to its top
             rect = (low, rect[1], rect[2], rect[3])
-        bounds = refine_bounds(rect, wall_st, s0, t0, cell, params)
+        bounds = _not_below_min_size(refine_bounds(rect, wall_st, s0, t0, cell, params),
+                                     refine_bounds(rect, None, s0, t0, cell, params), params)
         # sizes count inside the façade only: a sliver under the eave is not a window reaching above the roof
         bounds = (max(bounds[0], s0), min(bounds[1], s0 + cols * cell), max(bounds[2], t0),
                   min(bounds[3], t0 + rows * cell))
@@ -320,6 +321,21 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         out.append(Opening(kind, mask, rect, eps, fill, occ_border, n_cells, region, bounds))
     below_floor_level(out, ground, params)
     return out
+
+
+def _not_below_min_size(refined: tuple[float, float, float, float], cells: tuple[float, float, float, float],
+                        params: FacadeParams) -> tuple[float, float, float, float]:
+    """A rectangle's sides placed from the wall points (``refined``), except along an axis where they bring it
+    below ``min_opening_size`` while its cell edges (``cells``, half a cell out) do not: a narrow window's frame,
+    a few cm behind the wall plane, returns "wall" points inside the opening that moved both sides a cell inwards
+    (issue 18 round 7, hard dev seeds 117 and 120: open windows 0.63 and 0.69 m wide measured 0.42 and 0.44 m:
+    unknown regions)."""
+    out = list(refined)
+    least = params.openings.min_opening_size
+    for lo, hi in ((0, 1), (2, 3)):
+        if refined[hi] - refined[lo] < least <= cells[hi] - cells[lo]:
+            out[lo], out[hi] = cells[lo], cells[hi]
+    return (out[0], out[1], out[2], out[3])
 
 
 def _sides(r0: int, c0: int, c1: int, ground: np.ndarray, t0: float, cell: float,
