@@ -385,8 +385,9 @@ def test_door_in_its_reveals_shadow_on_the_ground_line_is_a_door():
     """A door 1.0 x 2.1 m on the ground line whose border is all shadow (its reveals on three sides at grazing
     incidence, the pavement below it: no wall) was an unknown region: "enclosed by wall" wanted wall below it too
     (issue 18 round 7, hard dev seeds 71 and 79: three doors). Wall within reach beyond its left, right and top
-    sides now encloses it; the same hole 1 m above the ground line with no wall below stays unknown, and with
-    ``ground_encloses = False`` both are unknown."""
+    sides now encloses it; the same hole 1 m above the ground line with no wall below, and a hole 1.2 m tall on
+    the ground line (too low for a door; dev seed 116: below a shop window) stay unknown, and with
+    ``ground_encloses = False`` all three are unknown."""
     from lidarmap.facade.openings import HOLE, OBJECT, OCCLUDED, detect_openings
 
     values = np.full((45, 60), OBJECT, dtype=np.int8)
@@ -394,13 +395,15 @@ def test_door_in_its_reveals_shadow_on_the_ground_line_is_a_door():
         values[r0 - 1:r0 + 22, c0 - 1:c0 + 11] = OCCLUDED  # the shadow fringe round it, and nothing below it
         values[r0:r0 + 21, c0:c0 + 10] = HOLE
     values[0:11, 39:51] = OCCLUDED  # the lifted one: no wall below it either
+    values[0:14, 24:36] = OCCLUDED  # a hole 1.2 m tall on the ground line, too low for a door: unknown
+    values[1:13, 25:35] = HOLE
     params = FacadeParams()
     ops = detect_openings(values, 0.1, params)
-    assert [op.kind for op in ops] == [ElementKind.DOOR, ElementKind.UNKNOWN]
+    assert [op.kind for op in ops] == [ElementKind.DOOR, ElementKind.UNKNOWN, ElementKind.UNKNOWN]
     assert ops[0].occluded_border == pytest.approx(1.0)
     assert ops[0].bounds[2] == pytest.approx(0.05) and ops[0].bounds[3] == pytest.approx(2.25)
     off = params.updated(ground_encloses=False)
-    assert [op.kind for op in detect_openings(values, 0.1, off)] == [ElementKind.UNKNOWN, ElementKind.UNKNOWN]
+    assert [op.kind for op in detect_openings(values, 0.1, off)] == [ElementKind.UNKNOWN] * 3
 
 
 def test_narrow_window_whose_frame_returns_wall_points_keeps_its_size():

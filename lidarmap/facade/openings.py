@@ -287,8 +287,7 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         unknown = Opening(ElementKind.UNKNOWN, mask, None, math.inf, fill, occ_border, n_cells, region)
         if touches_edge or area > params.openings.max_opening_area or not (
                 fill >= params.openings.Ta or fill >= params.openings.Ta_enclosed
-                and enclosed_by_wall(work, (r0, r1, c0, c1), params, sides=_sides(r0, c0, c1, ground, t0, cell,
-                                                                                   params))):
+                and enclosed_by_wall(work, (r0, r1, c0, c1), params)):
             out.append(unknown)
             continue
         rect, _ = fit_rectangle(region, work, params)
@@ -309,7 +308,7 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
             hidden = not enclosed_by_wall(work, seen_rect, params, sides=(True, True, False, True))
         else:
             hidden = occ_border > params.openings.occlusion_touch_max and not enclosed_by_wall(
-                work, rect, params, sides=_sides(rect[0], rect[2], rect[3], ground, t0, cell, params))
+                work, rect, params, sides=_sides(rect, ground, t0, cell, params))
         if hidden or eps > params.openings.max_window_uncertainty \
                 or min(width, height) < params.openings.min_opening_size:
             unknown.rect = seen_rect if hidden else None
@@ -338,13 +337,16 @@ def _not_below_min_size(refined: tuple[float, float, float, float], cells: tuple
     return (out[0], out[1], out[2], out[3])
 
 
-def _sides(r0: int, c0: int, c1: int, ground: np.ndarray, t0: float, cell: float,
+def _sides(rect: tuple[int, int, int, int], ground: np.ndarray, t0: float, cell: float,
            params: FacadeParams) -> tuple[bool, bool, bool, bool]:
-    """The sides (left, right, below, above) of a box starting at row ``r0`` over columns [c0, c1) that wall must
-    close for :func:`enclosed_by_wall`: not the one below when ``ground_encloses`` and the box starts within
-    ``door_bottom_tol`` of the ground line (a door has pavement below it, no wall)."""
+    """The sides (left, right, below, above) of a box (r0, r1, c0, c1) that wall must close for
+    :func:`enclosed_by_wall`: not the one below when ``ground_encloses`` and the box is door-tall
+    (``door_min_height``) and starts within ``door_bottom_tol`` of the ground line (a door has pavement below it,
+    no wall; a lower hole there, e.g. under a shop window, still needs wall below)."""
+    r0, r1, c0, c1 = rect
     op = params.openings
-    at_ground = op.ground_encloses and t0 + r0 * cell <= float(np.mean(ground[c0:c1])) + op.door_bottom_tol
+    at_ground = op.ground_encloses and (r1 - r0) * cell >= op.door_min_height \
+        and t0 + r0 * cell <= float(np.mean(ground[c0:c1])) + op.door_bottom_tol
     return (True, True, not at_ground, True)
 
 

@@ -281,9 +281,10 @@ class OpeningParams:
     enclosed_reach_cells (4): ... and a hole whose rectangle has observed wall within this many cells beyond
         each of its four sides (along half of each side at least) is a whole opening however much of its border
         is occluded (shadow fringes of reveals at grazing incidence).
-    ground_encloses (True): ... the side below a box that starts within door_bottom_tol of the ground line
-        needs no wall (a door has the pavement below it: its border was the shadow fringe of its reveals on
-        three sides and the ground on the fourth, never "enclosed"); also for Ta_enclosed.
+    ground_encloses (True): ... the side below a door-tall rectangle (door_min_height) that starts within
+        door_bottom_tol of the ground line needs no wall (a door has the pavement below it: its border was the
+        shadow fringe of its reveals on three sides and the ground on the fourth, never "enclosed"). Not for
+        Ta_enclosed: a jagged hole's box on the ground line below a shop window was a false window (dev seed 116).
     canny_sigma (1.0): Canny smoothing (cells).
     hough_lines (6): Hough peaks per orientation.
     hough_max_tilt_deg (2.0), hough_angle_steps (2): near-vertical/horizontal angles tried.
