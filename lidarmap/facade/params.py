@@ -266,6 +266,10 @@ class OpeningParams:
     Ta (0.7): fill ratio (hole cells / bounding-box cells) above which a hole is a window candidate. A
         rectangle has ~1 (0.8-0.95 with jagged sampled edges), an arched window ~0.9, a circle 0.785; L-shaped or
         diagonal leftovers of shadows score ≤ 0.6-0.75.
+    Ta_enclosed (0.55): ... a hole with a lower fill ratio, down to this, is a candidate too when observed wall
+        closes its bounding box on all four sides (:func:`enclosed_by_wall`): a narrow window's jagged edges
+        (one cell of 5-7) or a shadow's corner inside it cost more than 0.3 of its box, and wall around it says
+        the box is the opening. Set it to Ta to turn this off.
     min_hole_area (0.12): smaller holes are sampling gaps.
     max_opening_area (16.0): larger holes are UNKNOWN.
     min_opening_size (0.45): windows/doors narrower or lower than this are UNKNOWN (the visible corner of a
@@ -277,6 +281,10 @@ class OpeningParams:
     enclosed_reach_cells (4): ... and a hole whose rectangle has observed wall within this many cells beyond
         each of its four sides (along half of each side at least) is a whole opening however much of its border
         is occluded (shadow fringes of reveals at grazing incidence).
+    ground_encloses (True): ... the side below a door-tall rectangle (door_min_height) that starts within
+        door_bottom_tol of the ground line needs no wall (a door has the pavement below it: its border was the
+        shadow fringe of its reveals on three sides and the ground on the fourth, never "enclosed"). Not for
+        Ta_enclosed: a jagged hole's box on the ground line below a shop window was a false window (dev seed 116).
     canny_sigma (1.0): Canny smoothing (cells).
     hough_lines (6): Hough peaks per orientation.
     hough_max_tilt_deg (2.0), hough_angle_steps (2): near-vertical/horizontal angles tried.
@@ -332,6 +340,7 @@ class OpeningParams:
 
     constraints: ClassVar[dict[str, str]] = {
         "Ta": "(0, 1]",
+        "Ta_enclosed": "(0, 1]",
         "min_hole_area": ">= 0",
         "max_opening_area": ">= 0",
         "min_opening_size": ">= 0",
@@ -365,12 +374,14 @@ class OpeningParams:
     }
 
     Ta: float = 0.7
+    Ta_enclosed: float = 0.55
     min_hole_area: float = 0.12
     max_opening_area: float = 16.0
     min_opening_size: float = 0.45
     max_window_uncertainty: float = 0.5
     occlusion_touch_max: float = 0.6
     enclosed_reach_cells: int = 4
+    ground_encloses: bool = True
     canny_sigma: float = 1.0
     hough_lines: int = 6
     hough_max_tilt_deg: float = 2.0
