@@ -21,7 +21,7 @@ from lidarmap.facade.eval import polygon_iou
 from lidarmap.facade.model import Element, ElementKind, Layer
 from lidarmap.facade.observe import window_uncertainty_eq3
 from lidarmap.facade.openings import HOLE, OBJECT, OCCLUDED
-from lidarmap.facade.params import FacadeParams
+from lidarmap.facade.params import FacadeParams, OpeningParams
 from lidarmap.map.model import BuildingMap, Campaign
 from lidarmap.map.refine import (
     RefineParams,
@@ -758,14 +758,14 @@ def test_a_window_verdict_from_a_shape_too_short_for_a_door_does_not_retype_a_do
     ground said, and with more window evidence it retyped the fused opening (2.03 m tall) a window. That shape's
     verdict came from its size alone, which the fused rectangle no longer has: it does not vote, the door stays.
     A window shape of a door's size (typed by the ground line) still outvotes the door, and without the door
-    sizes (``door_size=None``) every shape votes as before."""
+    sizes (``doors=None``) every shape votes as before."""
     from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
 
     grid = _Grid(0.0, 0.0, 0.1, (40, 40))
     door = box(1.0, 0.4, 2.4, 2.5)
     stored = [Element(3, ElementKind.DOOR, door, None, 0.1, campaigns=[1])]
-    sizes = (1.95, 0.7, 3.5)
-    for shape, door_size, kind in ((box(1.0, 0.5, 2.4, 2.44), sizes, ElementKind.DOOR),
+    sizes = OpeningParams()  # door_min_height 1.95, door_min_width 0.7, door_max_width 3.5
+    for shape, doors, kind in ((box(1.0, 0.5, 2.4, 2.44), sizes, ElementKind.DOOR),
                                    (box(1.0, 0.5, 2.4, 2.44), None, ElementKind.WINDOW),
                                    (box(1.0, 0.45, 2.4, 2.5), sizes, ElementKind.WINDOW)):
         new = [Element(0, ElementKind.WINDOW, shape, None, 0.05, campaigns=[2])]
@@ -774,8 +774,8 @@ def test_a_window_verdict_from_a_shape_too_short_for_a_door_does_not_retype_a_do
         votes = _Votes(grid, old_w + new_w, objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
                        np.ones(grid.shape, bool), window_new=new_w)
         fused, _ = _fuse_openings(stored, new, votes, _Ids(stored + new), RefineParams(), (0.0, 4.0, 0.0, 4.0), [],
-                                  0.45, door_size)
-        assert [(e.element_id, e.kind) for e in fused] == [(3, kind)], (shape.bounds, door_size)
+                                  0.45, doors)
+        assert [(e.element_id, e.kind) for e in fused] == [(3, kind)], (shape.bounds, doors)
         assert fused[0].polygon.bounds[3] - fused[0].polygon.bounds[1] >= 1.95
 
 

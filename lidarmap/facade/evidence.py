@@ -380,7 +380,7 @@ def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: fl
         r0, r1, c0, c1 = sl[0].start, sl[0].stop, sl[1].start, sl[1].stop
         region = labels == lab
         width, height = (c1 - c0) * cell, (r1 - r0) * cell
-        if height < op.door_min_height or not op.door_min_width <= width <= op.door_max_width:
+        if not op.door_sized(width, height):
             continue
         if (region & known).sum() < op.Ta * known[r0:r1, c0:c1].sum():
             continue  # measured wall inside the box: not one rectangle

@@ -449,7 +449,7 @@ def door_or_window(bounds: tuple[float, float, float, float], ground: float, mas
     window."""
     op = params.openings
     width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
-    if height < op.door_min_height or not op.door_min_width <= width <= op.door_max_width:
+    if not op.door_sized(width, height):
         return ElementKind.WINDOW
     # a leaf closes the whole opening; the reveals of an open window catch pulses along its border only
     core = ndimage.binary_erosion(mask, structure=np.ones((5, 5), dtype=bool))

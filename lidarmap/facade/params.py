@@ -413,6 +413,12 @@ class OpeningParams:
     def __post_init__(self) -> None:
         check_params(self)
 
+    def door_sized(self, width: float, height: float, slack: float = 0.0) -> bool:
+        """Whether an opening ``width`` x ``height`` (m) has a door's size: at least ``door_min_height`` tall and
+        ``door_min_width`` .. ``door_max_width`` wide, each limit widened by ``slack`` (rounding of fused sides)."""
+        return height >= self.door_min_height - slack \
+            and self.door_min_width - slack <= width <= self.door_max_width + slack
+
 
 @dataclasses.dataclass(frozen=True)
 class EvidenceParams:

@@ -80,7 +80,7 @@ from lidarmap.facade.model import (
 )
 from lidarmap.facade.observe import building_facades, layer_fit, observe_facade
 from lidarmap.facade.openings import box_sums, integral_image, side_wall_share
-from lidarmap.facade.params import FacadeParams
+from lidarmap.facade.params import FacadeParams, OpeningParams
 from lidarmap.facade.planes import fit_line_2d, footprint_edges
 from lidarmap.map.model import Building, BuildingMap, RoofPlane
 
@@ -642,15 +642,15 @@ def _member_weights(members: list[Element], n_old: int, votes: _Votes, within: n
 def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: RefineParams,
                    extent: tuple[float, float, float, float], n_old: int = 0,
                    extra_bounds: np.ndarray | None = None, min_size: float = 0.0,
-                   door_size: tuple[float, float, float] | None = None) -> Element | None:
+                   doors: OpeningParams | None = None) -> Element | None:
     """One window/door from matched shapes: vote-map refit over their edge lines, sub-cell sides averaged over the
     shapes that proposed the chosen line (weighted by campaigns), kind by evidence-weighted vote
     (:func:`weighted_kind`; the first ``n_old`` members are stored shapes). ``None`` when the fused ε exceeds
     ``max_window_uncertainty`` or the wall evidence over it outweighs its opening evidence
     (:func:`outweighed_by_wall`). ``extra_bounds`` (rows of s_lo, t_lo, s_hi, t_hi): more candidate sides, from
     stored unknown regions the shapes lie in. ``None`` too when a side of the fused rectangle, cut to the extent,
-    is shorter than ``min_size``. ``door_size`` (min height, min width, max width of a door): see
-    :func:`_kind_voters`."""
+    is shorter than ``min_size``. ``doors``: the detection's door sizes (see
+    :func:`_kind_voters`)."""
     g = votes.grid
     off = params.line_offsets
     bounds = np.array([[*m.polygon.bounds] for m in members])  # minx (s_lo), miny (t_lo), maxx (s_hi), maxy (t_hi)
@@ -705,7 +705,7 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     # the kind of the fused rectangle goes by the evidence each shape holds over it: the part of a shape the refit
     # rejected (a door shape twice the window's width, its other half wall) has no say in what the opening is
     evidence_over = _member_weights(members, n_old, votes, g.raster(poly))
-    votes_on_kind = [(m.kind, w) for m, w, v in zip(members, evidence_over, _kind_voters(members, poly, door_size))
+    votes_on_kind = [(m.kind, w) for m, w, v in zip(members, evidence_over, _kind_voters(members, poly, doors))
                      if v]
     kind = weighted_kind([k for k, _ in votes_on_kind], [w for _, w in votes_on_kind], keeper.kind)
     layered = [m for m in members if m.layer_id is not None]
@@ -715,23 +715,23 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
                    n_points=int(sum(m.n_points for m in members)), campaigns=campaigns)
 
 
-def _door_sized(polygon, door_size: tuple[float, float, float]) -> bool:
-    """Whether a rectangle has a door's size: at least ``door_size[0]`` tall, ``door_size[1]`` to ``door_size[2]``
-    wide (the detection's ``door_min_height``, ``door_min_width``, ``door_max_width``)."""
+def _door_sized(polygon, doors: OpeningParams) -> bool:
+    """Whether a rectangle has a door's size by the detection's limits (:meth:`OpeningParams.door_sized`; 1e-9 m of
+    slack: fused sides are sums of sub-cell offsets)."""
     s0, t0, s1, t1 = polygon.bounds
-    return t1 - t0 >= door_size[0] - 1e-9 and door_size[1] - 1e-9 <= s1 - s0 <= door_size[2] + 1e-9
+    return doors.door_sized(s1 - s0, t1 - t0, 1e-9)
 
 
-def _kind_voters(members: list[Element], fused, door_size: tuple[float, float, float] | None) -> list[bool]:
+def _kind_voters(members: list[Element], fused, doors: OpeningParams | None) -> list[bool]:
     """Which matched shapes vote on the kind of the fused rectangle ``fused``. A shape typed window whose own
     rectangle has no door's size was a window by its size alone (the detection types such shapes windows before
     it looks at the ground): once the fused rectangle has a door's size and another shape saw a door there, that
     verdict no longer applies and it does not vote (issue 18 round 7, dev seed 104: a flush door 2.03 m tall
     that one campaign measured 1.94 m, 1 cm below ``door_min_height``, became a window)."""
-    if door_size is None or not _door_sized(fused, door_size) \
+    if doors is None or not _door_sized(fused, doors) \
             or not any(m.kind is ElementKind.DOOR for m in members):
         return [True] * len(members)
-    return [m.kind is not ElementKind.WINDOW or _door_sized(m.polygon, door_size) for m in members]
+    return [m.kind is not ElementKind.WINDOW or _door_sized(m.polygon, doors) for m in members]
 
 
 def _own_votes(w: np.ndarray, o: np.ndarray, claimed: np.ndarray, kept_ties: np.ndarray | None = None) -> np.ndarray:
@@ -870,11 +870,11 @@ def _unknown_bounds(shapes: list[Element], unknown: list[Element]) -> np.ndarray
 def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _Ids, params: RefineParams,
                    extent: tuple[float, float, float, float],
                    unknown: list[Element] | None = None, min_size: float = 0.0,
-                   door_size: tuple[float, float, float] | None = None,
+                   doors: OpeningParams | None = None,
                    min_fill: float = 0.0) -> tuple[list[Element], set[int]]:
     """Windows and doors after the fusion, and the ids of those that changed (merged, added or re-scored). A new
     shape without a stored match may take the sides of a stored ``unknown`` region it lies in
-    (:func:`_unknown_bounds`); a fused shape with a side below ``min_size`` is dropped. ``door_size``: the
+    (:func:`_unknown_bounds`); a fused shape with a side below ``min_size`` is dropped. ``doors``: the
     detection's door size limits (:func:`_kind_voters`; ``None``: every matched shape votes on the kind);
     ``min_fill``: the detection's ``Ta`` (:func:`_holds_an_opening`)."""
     out: list[Element] = []
@@ -892,7 +892,7 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
         keep_id = _keeper(olds).element_id if olds else ids()
         extra = None if olds or not unknown else _unknown_bounds(news, unknown)
         merged = _merge_opening(olds + news, keep_id, votes, params, extent, n_old=len(olds), extra_bounds=extra,
-                                min_size=min_size, door_size=door_size)
+                                min_size=min_size, doors=doors)
         if merged is not None:
             out.append(merged)
             changed.add(keep_id)
@@ -1044,9 +1044,7 @@ def _fuse_elements(stored: Facade, obs: Facade, layer_map: dict[int, int], votes
 
     openings, changed = _fuse_openings(of(stored.elements, *OPENINGS), of(new, *OPENINGS), votes, ids, params,
                                        obs.extent, [e for e in stored.elements if e.is_unknown],
-                                       fparams.openings.min_opening_size,
-                                       (fparams.openings.door_min_height, fparams.openings.door_min_width,
-                                        fparams.openings.door_max_width), fparams.openings.Ta)
+                                       fparams.openings.min_opening_size, fparams.openings, fparams.openings.Ta)
     min_area = fparams.objects.min_object_area
     structures, changed_s = _fuse_structures(of(stored.elements, ElementKind.STRUCTURE),
                                              of(new, ElementKind.STRUCTURE), votes, ids, params, min_area)
@@ -1160,7 +1158,7 @@ def _enclosed_kind(rect, bottom: float, fparams: FacadeParams) -> ElementKind:
     edge seen as wall below a door encloses it like a sill (issue 18 round 7, dev seed 108: a door 2.4 m tall
     starting 0.17 m above the façade's bottom was promoted a window)."""
     op = fparams.openings
-    tall = _door_sized(rect, (op.door_min_height, op.door_min_width, op.door_max_width))
+    tall = _door_sized(rect, op)
     return ElementKind.DOOR if tall and rect.bounds[1] <= bottom + op.door_bottom_tol else ElementKind.WINDOW
 
 
