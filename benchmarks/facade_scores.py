@@ -116,8 +116,9 @@ def recall_by_glazing(buildings: list, truth, campaigns: list[int], min_visible:
     return out
 
 
-def score_map(buildings: list, truth, campaigns: list[int]) -> MapScore:
-    ev = evaluate_facades(buildings, truth, campaigns[-1], campaigns=campaigns)
+def score_map(buildings: list, truth, campaigns: list[int], parapets_hide: bool = True) -> MapScore:
+    """The map's scores after ``campaigns`` (``parapets_hide``: :func:`lidarmap.facade.eval.union_visibility`)."""
+    ev = evaluate_facades(buildings, truth, campaigns[-1], campaigns=campaigns, parapets_hide=parapets_hide)
     w, d = ev["window"], ev["door"]
     false, area = blank_wall_false_openings(buildings, truth, campaigns)
     return MapScore(tp=w["tp"] + d["tp"], fp=w["fp"] + d["fp"], fn=w["fn"] + d["fn"], door=d, window=w,

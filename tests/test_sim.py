@@ -22,9 +22,10 @@ from lidarmap.sim.city import BUILDING_LINE
 from lidarmap.sim.distance import MeshDistance
 from lidarmap.sim.family import DEV_SEEDS, EVAL_SEEDS
 from lidarmap.sim.hard import build_hard_city, campaign_setup
-from lidarmap.sim.mesh import GLASS, KIND, Labels, Soup, quads
+from lidarmap.sim.buildings import Facade
+from lidarmap.sim.mesh import GLASS, KIND, Labels, Soup, boxes, quads
 from lidarmap.sim.raycast import Tracer
-from lidarmap.sim.visibility import pulse_spacing
+from lidarmap.sim.visibility import pulse_spacing, seen_grid, visible_fraction
 
 SEED = 7
 PARAMS = SimParams(seed=SEED, buildings=2, campaigns=2)
@@ -487,6 +488,26 @@ def test_hard_family_content(hard):
     assert np.median(cloud.attrs["intensity"][glass]) < 0.3 * np.median(cloud.attrs["intensity"][wall])  # weakly
 
 
+def test_a_window_behind_a_balcony_parapet_is_not_seen_but_the_parapet_is():
+    """A line of sight ending on a balcony's parapet sees the parapet (``seen``), not the window behind it
+    (``wall_seen``, which the openings are scored by); above the parapet both see the wall."""
+    f = Facade(id=1, building_id=1, origin=np.zeros(3), u=np.array([1.0, 0, 0]), width=4.0, t_bottom=0.0,
+               t_eave=6.0, t_top=6.0, street_facing=True)
+    soup = Soup()
+    soup.add(f.to_local(quads(np.array([[[0, 0, 0], [4, 0, 0], [4, 6, 0], [0, 6, 0]]], float))),
+             Labels(classification=6, kind=KIND["wall"], facade_id=f.id))
+    parapet, _ = boxes(np.array([[1.0, 2.85, 0.0]]), np.array([[3.0, 4.0, 1.0]]))  # s, t, d: 1 m out, 1.15 m high
+    soup.add(f.to_local(parapet), Labels(classification=6, kind=KIND["structure"], facade_id=f.id))
+    s = np.linspace(-2.0, 6.0, 161)
+    sensors = f.to_local(np.column_stack([s, np.full_like(s, 2.5), np.full_like(s, 8.0)]))  # 8 m out, 2.5 m up
+    seen, wall_seen = seen_grid(Tracer(soup.build(), seed=0), f, sensors, np.tile(f.u, (len(s), 1)), 0.1, 50.0)
+    window = (1.3, 2.7, 3.0, 4.0)  # wholly behind the parapet seen from 2.5 m
+    assert visible_fraction(seen, window, 0.1) == 1.0 and visible_fraction(wall_seen, window, 0.1) == 0.0
+    above = (1.3, 2.7, 4.8, 5.8)  # the sight lines pass over the parapet's top (at most 4.0 + 0.3 m there)
+    assert visible_fraction(seen, above, 0.1) == 1.0 and visible_fraction(wall_seen, above, 0.1) == 1.0
+    assert np.array_equal(wall_seen, seen & wall_seen) and wall_seen.sum() < seen.sum()
+
+
 def test_glass_returns_its_fraction_of_pulses():
     """A pane returning 30 % of pulses in front of an opaque wall: 30 % glass returns, the rest from the wall."""
     soup = Soup()
@@ -502,6 +523,23 @@ def test_glass_returns_its_fraction_of_pulses():
     assert abs(share - 0.3) < 0.015
     again = Tracer(scene, seed=5).trace(np.tile([-5.0, 0, 0], (n, 1)), dirs, max_range=50.0)
     assert np.array_equal(again.tri, returns.tri)  # the draws come from the seed
+
+
+def test_hard_openings_are_scored_by_what_the_parapets_leave_seen(hard):
+    """Windows and doors count as seen by ``wall_seen``, structures by ``seen`` (their own surfaces)."""
+    from lidarmap.facade.eval import union_visibility
+
+    _, truth = hard
+    vis, cell = truth.visibility(1), truth.visibility_cell
+    hidden = 0
+    for f in truth.facades.values():
+        for e in f.elements:
+            grid = vis[f.id]["seen" if e.kind == "structure" else "wall_seen"]
+            assert e.visible_fraction[1] == pytest.approx(visible_fraction(grid, e.rect, cell))
+            hidden += e.kind != "structure" and visible_fraction(vis[f.id]["seen"], e.rect, cell) > e.visible_fraction[1]
+    assert hidden > 0  # some windows of this scene stand behind a balcony's parapet
+    new, old = union_visibility(truth, [1]), union_visibility(truth, [1], parapets_hide=False)
+    assert all(new[i] <= old[i] for i in new) and sum(new.values()) < sum(old.values())
 
 
 def test_hard_gps_drift_is_bounded_and_smooth(hard):

@@ -10,7 +10,8 @@ model). Matching rules:
   negatives); predictions on less visible truth openings (IoU > 0.1) count neither way. Truth façades that no
   extracted façade matched contribute their visible openings as false negatives. For a map refined by several
   campaigns pass ``campaigns``: an opening is visible when the cells seen by *any* of them (the truth's
-  per-campaign ``seen`` grids, OR-ed) cover ``min_visible`` of it. Structures (balconies, pilasters) are scored
+  per-campaign ``wall_seen`` grids, OR-ed: a window behind a balcony's parapet is hidden by it) cover
+  ``min_visible`` of it. Structures (balconies, pilasters) are scored
   by the same rules on the bounding boxes of their outlines;
 * the plane offset error of a matched façade is the mean distance of its extent corners (on d = 0) to the truth
   plane, the angle error the angle between normals.
@@ -90,21 +91,28 @@ def match_facade(f: Facade, truth_facades: list, register: Callable | None = Non
     return best
 
 
-def union_visibility(truth, campaigns: list[int]) -> dict[int, float]:
-    """Fraction of each truth element's cells seen by at least one of ``campaigns`` (element id -> fraction)."""
+def union_visibility(truth, campaigns: list[int], parapets_hide: bool = True) -> dict[int, float]:
+    """Fraction of each truth element's cells seen by at least one of ``campaigns`` (element id -> fraction).
+
+    Windows and doors by the ``wall_seen`` grids (a line of sight ending on a balcony's parapet does not see the
+    opening behind it), structures by ``seen``. ``parapets_hide=False`` scores the openings by ``seen`` too: the
+    truth before 2026-11-26, kept to compare figures across that change.
+    """
     from lidarmap.sim.visibility import (
         visible_fraction,  # the simulator's own rule (cell centres in the rect)
     )
 
-    grids: dict[int, np.ndarray] = {}
+    grids: dict[str, dict[int, np.ndarray]] = {"seen": {}, "wall_seen": {}}
     for c in campaigns:
         for fid, g in truth.visibility(c).items():
-            grids[fid] = g["seen"] if fid not in grids else (grids[fid] | g["seen"])
+            for layer, union in grids.items():
+                union[fid] = g[layer] if fid not in union else (union[fid] | g[layer])
     cell = truth.visibility_cell
     out: dict[int, float] = {}
     for tf in truth.facades.values():
         for e in tf.elements:
-            out[e.id] = visible_fraction(grids[tf.id], e.rect, cell) if tf.id in grids else 0.0
+            layer = "wall_seen" if parapets_hide and e.kind != "structure" else "seen"
+            out[e.id] = visible_fraction(grids[layer][tf.id], e.rect, cell) if tf.id in grids[layer] else 0.0
     return out
 
 
@@ -180,12 +188,16 @@ def _score_facade(f: Facade, tb, register: Callable | None, iou: float, is_visib
 
 
 def evaluate_facades(buildings: list[ObservedBuilding], truth, campaign_id: int, register: Callable | None = None,
-                     iou: float = 0.5, min_visible: float = 0.9, campaigns: list[int] | None = None) -> dict:
+                     iou: float = 0.5, min_visible: float = 0.9, campaigns: list[int] | None = None,
+                     parapets_hide: bool = True) -> dict:
     """Window and door precision/recall/F1, mean IoU, plane offset and angle errors (see the module doc).
 
     ``campaigns`` (a refined map): visibility is the union over these campaigns instead of ``campaign_id`` alone.
+    ``parapets_hide``: see :func:`union_visibility` (False: the truth before 2026-11-26).
     """
-    union = union_visibility(truth, campaigns) if campaigns else None
+    if not parapets_hide and not campaigns:
+        campaigns = [campaign_id]
+    union = union_visibility(truth, campaigns, parapets_hide) if campaigns else None
 
     def is_visible(e) -> bool:
         fraction = union.get(e.id, 0.0) if union is not None else e.visible_fraction.get(campaign_id, 0.0)

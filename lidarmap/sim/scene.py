@@ -223,13 +223,18 @@ def _visibility(city: City, params: SimParams, tracer: Tracer, path, hits: HitGr
     arrays: dict[str, np.ndarray] = {"facade_ids": np.array([f.id for f in facades], np.int32),
                                      "cell_size": np.array(cell)}
     for f in facades:
-        seen = np.logical_or.reduce([seen_grid(tracer, f, path.xyz, profile_plane_normals(path, yaw), cell,
-                                               params.mls_max_range, rule) for yaw in yaws])
+        per_head = [seen_grid(tracer, f, path.xyz, profile_plane_normals(path, yaw), cell, params.mls_max_range,
+                              rule) for yaw in yaws]
+        seen = np.logical_or.reduce([g[0] for g in per_head])
+        wall_seen = np.logical_or.reduce([g[1] for g in per_head])
         arrays[f"seen_{f.id}"] = seen
+        arrays[f"wall_seen_{f.id}"] = wall_seen
         arrays[f"hit_{f.id}"] = hits.grids[f.id]
         for e in f.elements:
             entry = fractions.setdefault(e.id, {"visible_fraction": {}, "hit_fraction": {}})
-            entry["visible_fraction"][str(campaign.id)] = visible_fraction(seen, e.rect, cell)
+            # openings behind a balcony's parapet are hidden by it; the structure itself is seen
+            grid = seen if e.kind == "structure" else wall_seen
+            entry["visible_fraction"][str(campaign.id)] = visible_fraction(grid, e.rect, cell)
             entry["hit_fraction"][str(campaign.id)] = visible_fraction(hits.grids[f.id], e.rect, cell)
     write_npz(target, arrays)
 

@@ -200,10 +200,13 @@ class SimTruth:
                                                       "kind")}, kind_names=tuple(str(k) for k in data["kind_names"]))
 
     def visibility(self, campaign: int) -> dict[int, dict[str, np.ndarray]]:
-        """Per façade id: ``{"seen": bool grid, "hit": bool grid}`` (rows t, columns s; see docs)."""
+        """Per façade id: ``{"seen": bool grid, "wall_seen": bool grid, "hit": bool grid}`` (rows t, columns s;
+        :mod:`lidarmap.sim.visibility`). Truth written before ``wall_seen`` existed gives ``seen`` for it."""
         path = self.root / "truth" / f"visibility_{campaign}.npz"
         with np.load(path) as data:
-            return {int(fid): {"seen": data[f"seen_{fid}"], "hit": data[f"hit_{fid}"]} for fid in data["facade_ids"]}
+            return {int(fid): {"seen": data[f"seen_{fid}"], "hit": data[f"hit_{fid}"],
+                               "wall_seen": data[f"wall_seen_{fid}"] if f"wall_seen_{fid}" in data
+                               else data[f"seen_{fid}"]} for fid in data["facade_ids"]}
 
     @property
     def visibility_cell(self) -> float:

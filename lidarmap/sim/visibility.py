@@ -4,9 +4,12 @@ Grid layout: ``grid[j, i]`` is the cell s in [i*c, (i+1)*c), t in [j*c, (j+1)*c)
 covering s in [0, width) and t in [0, t_top) (t = 0 is the façade origin, the lowest terrain along it).
 
 * ``seen``: the line of sight from the sensor -- at the profile whose scan plane passes through the cell centre,
-  within max range -- first meets a surface of this façade (wall, reveal, room, door, structure, or the dark
-  absorber behind a window) rather than a car, a tree, another building or the terrain. Occlusion truth that does
-  not depend on the angular step.
+  within max range -- first meets a surface of this façade (wall, reveal, room, door, glass, curtain, structure, or
+  the dark absorber behind a window) rather than a car, a tree, another building or the terrain. Occlusion truth
+  that does not depend on the angular step. What the structures (balconies, shutters, cornices) are scored by.
+* ``wall_seen``: ``seen``, less the cells whose line of sight ends on a structure standing in front of the wall (a
+  balcony's parapet): the wall and its openings behind it are as hidden as behind a tree. What the windows and
+  doors are scored by (since 2026-11-26; before, a window wholly behind a parapet counted as seen).
 * ``hit``: cells where at least one of the campaign's actual pulses ended on this façade (the pulse's crossing of the
   façade plane for recessed surfaces, its hit for the rest).
 """
@@ -18,6 +21,7 @@ import dataclasses
 import numpy as np
 
 from lidarmap.sim.buildings import Facade
+from lidarmap.sim.mesh import KIND
 from lidarmap.sim.raycast import Tracer
 
 
@@ -45,14 +49,16 @@ class Observability:
 
 
 def seen_grid(tracer: Tracer, f: Facade, sensors: np.ndarray, plane_normals: np.ndarray, cell: float,
-              max_range: float, observability: Observability = Observability()) -> np.ndarray:
-    """Cells of ``f`` with a clear line of sight from the profile plane through them (see module doc).
+              max_range: float, observability: Observability = Observability()) -> tuple[np.ndarray, np.ndarray]:
+    """Cells of ``f`` with a clear line of sight from the profile plane through them: ``(seen, wall_seen)`` (see
+    module doc).
 
     With a limited ``observability`` the profiles are also interpolated (up to 8 in between) where their stripes
     on the wall lie farther apart than half a cell, so a wall swept at a grazing angle is judged everywhere.
     """
     rows, cols = grid_shape(f, cell)
     grid = np.zeros((rows, cols), bool)
+    wall = np.zeros((rows, cols), bool)
     t = (np.arange(rows) + 0.5) * cell
     h = plane_normals
     stripe = np.zeros(len(h))
@@ -61,13 +67,13 @@ def seen_grid(tracer: Tracer, f: Facade, sensors: np.ndarray, plane_normals: np.
     hu = h @ f.u
     usable = np.abs(hu) > 0.1  # profile planes nearly parallel to the wall never sweep across it
     if not usable.any():
-        return grid
+        return grid, wall
     h, p, hu, stripe = h[usable], sensors[usable], hu[usable], stripe[usable]
     # s where profile plane k (h . (x - p) = 0) crosses the façade line at height t_j
     s = ((np.einsum("ij,ij->i", h, p - f.origin))[:, None] - t[None, :] * h[:, 2:3]) / hu[:, None]
     k, j = np.nonzero((s >= 0) & (s < f.width))
     if len(k) == 0:
-        return grid
+        return grid, wall
     s = s[k, j]
     target = f.origin + s[:, None] * f.u + t[j][:, None] * np.array([0.0, 0.0, 1.0])
     ray = target - p[k]
@@ -82,10 +88,13 @@ def seen_grid(tracer: Tracer, f: Facade, sensors: np.ndarray, plane_normals: np.
         ok &= (np.maximum(in_profile, stripe[k]) <= observability.max_spacing)
     k, j, s, ray, dist = k[ok], j[ok], s[ok], ray[ok], dist[ok]
     tri, _ = tracer.first_hit(p[k], ray / dist[:, None])
-    seen = (tri >= 0) & (tracer.scene.facade_id[np.maximum(tri, 0)] == f.id)
+    scene, first = tracer.scene, np.maximum(tri, 0)
+    seen = (tri >= 0) & (scene.facade_id[first] == f.id)
+    at_wall = seen & (scene.kind[first] != KIND["structure"])
     i = np.minimum((s / cell).astype(int), cols - 1)
     grid[j[seen], i[seen]] = True
-    return grid
+    wall[j[at_wall], i[at_wall]] = True
+    return grid, wall
 
 
 def pulse_spacing(r: np.ndarray, h: np.ndarray, n: np.ndarray, dist: np.ndarray, step: float) -> np.ndarray:
