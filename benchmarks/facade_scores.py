@@ -210,8 +210,9 @@ def markdown(runs: list[SceneRun], evaluation: bool, title: str = "Standard scen
     kind = "reserved evaluation seeds" if evaluation else "development seeds"
     lines = [f"### {title} ({kind})\n",
              ("The map after 1 and after all campaigns fused one by one (`refine_map`, as `lidarmap map update`), "
-             "scored against truth openings at least 90 % seen by the campaigns so far (hard family: seen = "
-             "line of sight at <= 80° incidence with expected samples <= 0.3 m apart). W+D F1: windows and doors "
+             "scored against truth openings at least 90 % seen by the campaigns so far (a line of sight that ends on "
+             "a balcony's parapet does not see the wall behind it; hard family: seen = line of sight at <= 80° "
+             "incidence with expected samples <= 0.3 m apart). W+D F1: windows and doors "
              "pooled (IoU >= 0.5, same type). False/500 m²: windows and doors on façades without any opening, per "
              "500 m² of their seen area (∞: openings on blank walls of which no cell counts as seen). Figures in benchmarks/facade_scores.py.\n"),
              ("| family | seed | points per campaign | W+D F1 after 1 | W+D F1 after last | door F1 after 1 / last | "

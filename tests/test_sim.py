@@ -18,11 +18,11 @@ from lidarmap.io.footprints import read_footprints
 from lidarmap.io.las import read_las
 from lidarmap.io.trajectory import read_trajectory
 from lidarmap.sim import SimParams, build_city, load_truth, simulate
+from lidarmap.sim.buildings import Facade
 from lidarmap.sim.city import BUILDING_LINE
 from lidarmap.sim.distance import MeshDistance
 from lidarmap.sim.family import DEV_SEEDS, EVAL_SEEDS
 from lidarmap.sim.hard import build_hard_city, campaign_setup
-from lidarmap.sim.buildings import Facade
 from lidarmap.sim.mesh import GLASS, KIND, Labels, Soup, boxes, quads
 from lidarmap.sim.raycast import Tracer
 from lidarmap.sim.visibility import pulse_spacing, seen_grid, visible_fraction
@@ -536,7 +536,8 @@ def test_hard_openings_are_scored_by_what_the_parapets_leave_seen(hard):
         for e in f.elements:
             grid = vis[f.id]["seen" if e.kind == "structure" else "wall_seen"]
             assert e.visible_fraction[1] == pytest.approx(visible_fraction(grid, e.rect, cell))
-            hidden += e.kind != "structure" and visible_fraction(vis[f.id]["seen"], e.rect, cell) > e.visible_fraction[1]
+            behind = visible_fraction(vis[f.id]["seen"], e.rect, cell) > e.visible_fraction[1]
+            hidden += e.kind != "structure" and behind
     assert hidden > 0  # some windows of this scene stand behind a balcony's parapet
     new, old = union_visibility(truth, [1]), union_visibility(truth, [1], parapets_hide=False)
     assert all(new[i] <= old[i] for i in new) and sum(new.values()) < sum(old.values())
