@@ -31,7 +31,10 @@ def log(text: str) -> None:
 
 
 def epoch_line(entry: dict) -> str:
-    line = f"epoch {entry['epoch']:3d}  loss {entry['loss']:.4f}  lr {entry['lr']:.5f}  {entry['seconds']:7.1f} s"
+    if "averaged" in entry:  # the weights averaged over the last epochs (swa_epochs)
+        line = f"average of the last {entry['averaged']} epochs  {entry['seconds']:7.1f} s"
+    else:
+        line = f"epoch {entry['epoch']:3d}  loss {entry['loss']:.4f}  lr {entry['lr']:.5f}  {entry['seconds']:7.1f} s"
     val = entry.get("val")
     if val:
         line += (f"  val OA {val['overall_accuracy']:.4f}  building IoU {val['iou']['building']:.4f}"

@@ -13,7 +13,7 @@ import torch
 from pyproj import CRS
 
 from lidarmap.core import PointCloud
-from lidarmap.errors import InputError
+from lidarmap.errors import InputError, ParameterError
 from lidarmap.io.las import read_las, write_las
 from lidarmap.segment import predict as predict_module
 from lidarmap.segment.baseline import (
@@ -261,6 +261,46 @@ def test_training_is_reproducible() -> None:
     second = train([("a", tiny_scene(0))], params, [("v", tiny_scene(2))], arch=arch).model
     for (name, a), b in zip(first.net.state_dict().items(), second.net.state_dict().values()):
         assert torch.equal(a, b), name
+
+
+def test_weight_averaging_returns_the_mean_of_the_last_epochs_with_batch_norm_recomputed() -> None:
+    """swa_epochs: the returned weights are the mean of the weights after each averaging epoch (captured here by
+    the report callback), the learning rate stays that of the last epoch, and the BatchNorm statistics are not any
+    epoch's; the same run twice gives the same weights."""
+    params = tiny_params(epochs=2, blocks_per_epoch=16, lr_step=1, lr_gamma=0.5, swa_epochs=3, swa_bn_batches=2)
+    arch = Arch(in_channels=len(params.spec.channels), **TINY_ARCH)
+    snapshots: list[list[torch.Tensor]] = []
+    watched: list[torch.Tensor] = []
+
+    def report(entry: dict) -> None:
+        if entry.get("swa"):
+            snapshots.append([p.detach().clone() for p in watched])
+
+    def spying_adam(parameters, **kw):  # the run's own parameters, in the network's order
+        watched.extend(parameters)
+        return adam(watched, **kw)
+
+    adam, torch.optim.Adam = torch.optim.Adam, spying_adam
+    try:
+        result = train([("a", tiny_scene(0))], params, [("v", tiny_scene(2))], arch=arch, report=report)
+    finally:
+        torch.optim.Adam = adam
+    history = result.history
+    assert [h["epoch"] for h in history] == [1, 2, 3, 4, 5, 5] and [bool(h.get("swa")) for h in history] == [
+        False, False, True, True, True, False] and history[-1]["averaged"] == 3
+    assert history[0]["lr"] > history[1]["lr"] == history[2]["lr"] == history[4]["lr"]
+    assert len(snapshots) == 3
+    for i, p in enumerate(result.model.net.parameters()):
+        np.testing.assert_allclose(p.detach().numpy(), np.mean([s[i].numpy() for s in snapshots], axis=0),
+                                   rtol=1e-5, atol=1e-6)
+    assert any(not torch.equal(snapshots[-1][i], p) for i, p in enumerate(result.model.net.parameters()))
+    assert "val" in history[1] and "val" in history[-1] and "val" not in history[4]  # last plain epoch, average
+    assert result.model.training["metrics"] == history[-1]["val"]
+    again = train([("a", tiny_scene(0))], params, [("v", tiny_scene(2))], arch=arch).model
+    for (name, a), b in zip(result.model.net.state_dict().items(), again.net.state_dict().values()):
+        assert torch.equal(a, b), name
+    with pytest.raises(ParameterError, match="swa_epochs"):
+        TrainParams(swa_epochs=-1)
 
 
 def test_predict_covers_every_point_and_is_deterministic(tiny_model) -> None:

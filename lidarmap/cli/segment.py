@@ -358,13 +358,15 @@ def train_command(
     params = params_from(TrainParams, config, epochs=epochs, seed=seed, device=device)
     val_clouds = [(str(i.path), i.cloud) for i in (read_input(p, crs) for p in val)] if val else None
     with progress() as bar:
-        task = bar.add_task("training", total=params.epochs)
+        task = bar.add_task("training", total=params.epochs + params.swa_epochs)
 
         def report(entry: dict[str, Any]) -> None:
-            bar.update(task, completed=entry["epoch"], description=f"training (loss {entry['loss']:.3f})")
+            what = (f"average of the last {entry['averaged']} epochs" if "averaged" in entry
+                    else f"loss {entry['loss']:.4f}")
+            bar.update(task, completed=entry["epoch"], description=f"training ({what})")
             if "val" in entry:
                 v = entry["val"]
-                bar.console.print(f"epoch {entry['epoch']}: loss {entry['loss']:.4f}, validation OA "
+                bar.console.print(f"epoch {entry['epoch']}: {what}, validation OA "
                                   f"{v['overall_accuracy']:.4f}, building IoU {v['iou']['building']:.4f}")
 
         result = train(clouds, params, val_clouds, report=report)

@@ -71,6 +71,11 @@ class TrainParams:
         works on files without colour.
     device ("auto"): "cpu", "cuda" or "auto".
     threads (0): torch CPU threads; 0 = one per core.
+    swa_epochs (0): after the last epoch, this many more at the last learning rate, and the model returned is the
+        average of the weights at the end of each of them (stochastic weight averaging: a flatter minimum, the
+        same network cost at inference); 0 = the last epoch's weights.
+    swa_bn_batches (16): batches run through the averaged network to recompute its BatchNorm statistics (the
+        averaged weights' own; the running statistics of any single epoch do not fit them).
     """
 
     section = "segment_train"
@@ -97,6 +102,8 @@ class TrainParams:
         "val_every": ">= 0",
         "device": "in auto, cpu, cuda",
         "threads": ">= 0",
+        "swa_epochs": ">= 0",
+        "swa_bn_batches": ">= 0",
     }
 
     seed: int = 0
@@ -123,6 +130,8 @@ class TrainParams:
     use_rgb: bool = False
     device: str = "auto"
     threads: int = 0
+    swa_epochs: int = 0
+    swa_bn_batches: int = 16
 
     def __post_init__(self) -> None:
         check_params(self)
@@ -288,6 +297,49 @@ def run_epoch(net: PointNet2Seg, optimiser: torch.optim.Optimizer, plan: Trainin
     return float(np.mean(losses))
 
 
+def running_average(average: dict[str, torch.Tensor] | None, net: torch.nn.Module,
+                    count: int) -> dict[str, torch.Tensor]:
+    """The mean of the network's parameters over ``count`` snapshots: ``average`` (of ``count - 1``) updated with
+    the current ones. Parameters only: BatchNorm buffers are recomputed for the averaged weights."""
+    current = {name: p.detach().clone() for name, p in net.named_parameters()}
+    if average is None:
+        return current
+    return {name: average[name] + (current[name] - average[name]) / count for name in current}
+
+
+def averaged_model(net: PointNet2Seg, model: SegmentModel, average: dict[str, torch.Tensor], plan: TrainingPlan,
+                   params: TrainParams, rng: np.random.Generator, device: torch.device,
+                   started: float) -> dict[str, Any]:
+    """Load the averaged weights into ``net``, recompute its BatchNorm statistics, validate: the history entry of
+    the averaged model."""
+    net.load_state_dict(average, strict=False)
+    recompute_batch_norm(net, plan, params, rng, device)
+    entry: dict[str, Any] = {"epoch": params.epochs + params.swa_epochs, "averaged": params.swa_epochs,
+                             "seconds": round(time.perf_counter() - started, 1)}
+    if plan.val_clouds:
+        net.eval()
+        entry["val"] = validate(model, plan.val_clouds, params.device, params.seed, params.threads)
+    return entry
+
+
+def recompute_batch_norm(net: PointNet2Seg, plan: TrainingPlan, params: TrainParams, rng: np.random.Generator,
+                         device: torch.device) -> None:
+    """BatchNorm running statistics of the (averaged) network, from ``swa_bn_batches`` training batches: a
+    cumulative mean over them (momentum None), as the averaged weights never ran forward before."""
+    norms = [m for m in net.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
+    for m in norms:
+        m.reset_running_stats()
+        m.momentum = None
+    net.train()
+    with torch.no_grad():
+        for _ in range(params.swa_bn_batches):
+            xyz, channels, _ = (torch.from_numpy(a).to(device)
+                                for a in _batch(plan.sources, plan.pick, params, params.spec, rng))
+            net(xyz, channels)
+    for m in norms:
+        m.momentum = 0.1  # torch's default, which every BatchNorm of the network was built with
+
+
 def training_record(plan: TrainingPlan, params: TrainParams, history: list[dict[str, Any]], seconds: float,
                     device: torch.device, threads: int) -> dict[str, Any]:
     """What the model file says about its training (data, parameters, history, validation scores)."""
@@ -339,19 +391,29 @@ def train(clouds: list[tuple[str, PointCloud]], params: TrainParams = TrainParam
         optimiser = torch.optim.Adam(net.parameters(), lr=params.learning_rate, weight_decay=params.weight_decay)
         scheduler = torch.optim.lr_scheduler.StepLR(optimiser, step_size=params.lr_step, gamma=params.lr_gamma)
         loss_weight = torch.tensor(plan.class_weights, dtype=torch.float32, device=device)
-        for epoch in range(1, params.epochs + 1):
+        average: dict[str, torch.Tensor] | None = None
+        for epoch in range(1, params.epochs + params.swa_epochs + 1):
             entry: dict[str, Any] = {"epoch": epoch,
                                      "loss": run_epoch(net, optimiser, plan, params, rng, device, loss_weight),
                                      "lr": optimiser.param_groups[0]["lr"],
                                      "seconds": round(time.perf_counter() - started, 1)}
-            scheduler.step()
-            due = epoch == params.epochs or (params.val_every and epoch % params.val_every == 0)
+            if epoch < params.epochs:
+                scheduler.step()  # the averaging epochs keep the last learning rate
+            elif epoch > params.epochs:
+                average = running_average(average, net, epoch - params.epochs)
+                entry["swa"] = True
+            due = epoch == params.epochs or (params.val_every and epoch % params.val_every == 0
+                                             and epoch < params.epochs)
             if due and plan.val_clouds:
                 net.eval()
                 entry["val"] = validate(model, plan.val_clouds, params.device, params.seed, params.threads)
             history.append(entry)
             if report:
                 report(entry)
+        if average is not None:
+            history.append(averaged_model(net, model, average, plan, params, rng, device, started))
+            if report:
+                report(history[-1])
     net.eval().cpu()
     model.net = net
     model.training = training_record(plan, params, history, time.perf_counter() - started, device, threads)
