@@ -297,6 +297,12 @@ def print_simulated(sim: dict, seed: int, variants: list[str]) -> None:
           f"{TARGETS['tree_fp']:.2f}: {mark(veg <= TARGETS['tree_fp'])} ({veg:.4f}).\n")
 
 
+def _averaged(training: dict) -> str:
+    """', then N more with their weights averaged' when the model was trained with swa_epochs."""
+    swa = (training.get("params") or {}).get("swa_epochs", 0)
+    return f", then {swa} more with their weights averaged" if swa else ""
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", type=Path, default=None, help="PointNet++ model (default: shipped)")
@@ -313,7 +319,7 @@ def main() -> None:
     print("## bench_segment\n")
     training = models["pointnet2"].training
     print(f"PointNet++ = the shipped model (`{Path(models['pointnet2'].source).name}`, trained "
-          f"{training.get('epochs', '?')} epochs in {training.get('seconds', 0) / 60:.0f} min on "
+          f"{training.get('epochs', '?')} epochs{_averaged(training)} in {training.get('seconds', 0) / 60:.0f} min on "
           f"{training.get('device', '?')}); **baseline** = geometric features + gradient boosting "
           f"(`{Path(models['baseline'].source).name}`). Both trained by `scripts/train_segmentation.py` on the same "
           f"recipe. {THREADS} torch/BLAS threads; machine load average {load_before:.1f} before, {load_after:.1f} after "
