@@ -327,6 +327,7 @@ def recompute_batch_norm(net: PointNet2Seg, plan: TrainingPlan, params: TrainPar
     """BatchNorm running statistics of the (averaged) network, from ``swa_bn_batches`` training batches: a
     cumulative mean over them (momentum None), as the averaged weights never ran forward before."""
     norms = [m for m in net.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
+    momenta = [m.momentum for m in norms]
     for m in norms:
         m.reset_running_stats()
         m.momentum = None
@@ -336,8 +337,8 @@ def recompute_batch_norm(net: PointNet2Seg, plan: TrainingPlan, params: TrainPar
             xyz, channels, _ = (torch.from_numpy(a).to(device)
                                 for a in _batch(plan.sources, plan.pick, params, params.spec, rng))
             net(xyz, channels)
-    for m in norms:
-        m.momentum = 0.1  # torch's default, which every BatchNorm of the network was built with
+    for m, momentum in zip(norms, momenta):
+        m.momentum = momentum
 
 
 def training_record(plan: TrainingPlan, params: TrainParams, history: list[dict[str, Any]], seconds: float,
