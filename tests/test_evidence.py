@@ -449,6 +449,87 @@ def test_door_typing_by_size_ground_line_and_leaf():
     assert door_or_window((0.0, 0.9, 0.9, 3.0), 0.0, mask, shut, params) is ElementKind.DOOR  # a leaf up the steps
 
 
+GRAZING_WINDOW = (9.0, 10.2, 0.85, 2.9)  # y0, y1, z0, z1 on the side wall x = 30: 2.05 m tall on a 0.85 m sill
+
+
+def _grazing_window_scene(seed: int = 0):
+    """The side wall of :func:`_grazing_scene` with one dark window on a 0.85 m sill in a 0.25 m deep reveal, seen
+    by a profiler yawed 10° forward at a cosine of incidence of at most 0.17 (80°): every pulse that passes the
+    window plane hits a jamb or the sill of the reveal, a few dm behind the wall."""
+    rng = np.random.default_rng(seed)
+    speed, sensor_y, sensor_z, reveal = 10.0, 0.0, 2.5, 0.25
+    xs = np.arange(20.0, 29.9, 0.015)
+    o, v, t = _profiles(xs, sensor_y, sensor_z, speed, step_deg=0.25, yaw_deg=10.0, lo_deg=0.0, hi_deg=100.0)
+    y0, y1, z0, z1 = GRAZING_WINDOW
+    surfaces = {"wall": _plane(o, v, 0, 30.0, (4.0, 16.0), (0.0, 9.0), [GRAZING_WINDOW]),
+                "ground": _plane(o, v, 2, 0.0, (-10.0, 30.0), (-15.0, 16.0)),
+                "jamb0": _plane(o, v, 1, y0, (30.0, 30.0 + reveal), (z0, z1)),
+                "jamb1": _plane(o, v, 1, y1, (30.0, 30.0 + reveal), (z0, z1)),
+                "sill": _plane(o, v, 2, z0, (30.0, 30.0 + reveal), (y0, y1))}
+    footprint = [[30.0, 4.0], [42.0, 4.0], [42.0, 16.0], [30.0, 16.0]]
+    return _cloud(o, v, t, surfaces, {k: 2 if k == "ground" else 6 for k in surfaces}, rng, footprint, speed,
+                  sensor_y, sensor_z, xs[0])
+
+
+def test_a_window_on_a_sill_seen_at_a_grazing_angle_is_a_window_though_its_reveal_returns_every_pulse():
+    """At 80° incidence the reveal catches every pulse that passes a door-tall window on a 0.85 m sill: read as a
+    leaf, that made it a door at the top of steps (``door_leaf_tol``; dev seed 122 after one campaign). The leaf
+    share counts only cells seen at a cosine of incidence of at least ``leaf_min_cos``."""
+    cloud, traj, fps = _grazing_window_scene()
+
+    def window(params: FacadeParams) -> tuple[float, ElementKind | None]:
+        openings = _openings(extract_buildings(cloud, traj, fps, params, campaign_id=1, seed=0))
+
+        def rect(frame) -> Polygon:
+            y0, y1, z0, z1 = GRAZING_WINDOW
+            st = frame.to_facade(np.array([[30.0, y0, z0], [30.0, y1, z1]]) + OFFSET)[:, :2]
+            return box(st[:, 0].min(), st[:, 1].min(), st[:, 0].max(), st[:, 1].max())
+
+        assert len(openings) == 1, [(k.value, p.bounds) for k, _, p in openings]
+        return _best(openings, rect)
+
+    iou, kind = window(FacadeParams())
+    assert iou >= 0.8 and kind is ElementKind.WINDOW, (iou, kind)
+    iou, kind = window(FacadeParams().updated(leaf_min_cos=0.0))  # every cell's share counts: the reveal is a leaf
+    assert iou >= 0.8 and kind is ElementKind.DOOR, (iou, kind)
+
+
+FRENCH_WINDOW = (8.0, 9.0, 3.0, 5.2)  # x0, x1, z0, z1: a first-floor window 2.2 m tall (a door's size)
+
+
+def test_a_few_points_labelled_ground_above_the_street_do_not_make_a_first_floor_window_a_door():
+    """A van hides the street and the wall's foot in front of a door-tall first-floor window; six returns labelled
+    ground 2.9 m above the street there (classification errors) lifted the ground line of their 1 m bins to the
+    wall's lowest visible point, 2.7 m, and the window, starting 0.3 m above it, became a door (on dev seed 136 a
+    first-floor window over 1-8 stray points at 4.1 m). Bins need ``ground_min_points``."""
+    rng = np.random.default_rng(4)
+    speed, sensor_y, sensor_z = 8.0, 0.0, 2.5
+    xs = np.arange(-4.0, 18.0, 0.06)
+    o, v, t = _profiles(xs, sensor_y, sensor_z, speed, step_deg=0.3, yaw_deg=0.0, lo_deg=0.0, hi_deg=160.0)
+    surfaces = {"wall": _plane(o, v, 1, WALL_Y, (0.0, 14.0), (0.0, 8.0), [FRENCH_WINDOW]),
+                "ground": _plane(o, v, 2, 0.0, (-10.0, 25.0), (-10.0, WALL_Y)),
+                # a van hides the street in front of the window
+                "van_side": _plane(o, v, 1, 2.0, (6.0, 11.0), (0.0, 2.6)),
+                "van_top": _plane(o, v, 2, 2.6, (6.0, 11.0), (2.0, 4.0))}
+    footprint = [[0.0, WALL_Y], [14.0, WALL_Y], [14.0, WALL_Y + 10.0], [0.0, WALL_Y + 10.0]]
+    cloud, traj, fps = _cloud(o, v, t, surfaces, {"wall": 6, "ground": 2, "van_side": 1, "van_top": 1}, rng,
+                              footprint, speed, sensor_y, sensor_z, xs[0])
+    stray = np.column_stack([np.linspace(7.2, 9.8, 6), np.full(6, WALL_Y - 1.5), np.full(6, 2.9)]) + OFFSET
+    attrs = {"classification": np.concatenate([cloud.attrs["classification"], np.full(6, 2, dtype=np.uint8)]),
+             "gps_time": np.concatenate([cloud.attrs["gps_time"], np.full(6, cloud.attrs["gps_time"].max())])}
+    cloud = PointCloud(xyz=np.vstack([cloud.xyz, stray]), attrs=attrs, crs=CRS_UTM, source="scan.laz")
+
+    def french_window(params: FacadeParams) -> tuple[float, ElementKind | None]:
+        openings = _openings(extract_buildings(cloud, traj, fps, params, campaign_id=1, seed=0))
+        assert len(openings) == 1, [(k.value, p.bounds) for k, _, p in openings]
+        return _best(openings, lambda fr: _truth_rect(fr, *FRENCH_WINDOW, y=WALL_Y))
+
+    iou, kind = french_window(FacadeParams())
+    assert iou >= 0.8 and kind is ElementKind.WINDOW, (iou, kind)
+    iou, kind = french_window(FacadeParams().updated(ground_min_points=1))  # every bin counts: the stray ones too
+    assert iou >= 0.8 and kind is ElementKind.DOOR, (iou, kind)
+
+
 def test_leaf_cells_of_a_flush_door_mostly_crossed_by_the_pulses_join_the_opening():
     """Issue 18 (dev seed 22, building 8): a later campaign saw a flush door (2.5 cm back) with most of its cells
     crossed by the pulses and a fifth returning from the leaf within pass_depth. Those leaf cells must not stay
@@ -689,3 +770,31 @@ def test_crossed_heads_a_few_cm_apart_still_see_wall_and_window():
     unknown = sum(e.polygon.area for b in buildings for f in b.facades for e in f.elements
                   if e.kind is ElementKind.UNKNOWN)
     assert unknown < 2.0
+
+
+def test_ground_line_drops_sparse_bins_and_keeps_the_street_slope_beyond_its_last_measured_metre():
+    """The ground line of a wall along x (façade s = x, in front = -y) over a street rising 5 % along it, measured
+    only for 0 <= x < 4 (a van hides the rest) plus two stray points labelled ground at 3 m in each metre beyond:
+    the stray bins are left out (``ground_min_points``) and the street keeps its slope past x = 4."""
+    from lidarmap.core import Trajectory
+    from lidarmap.facade.campaign import campaign_data
+    from lidarmap.facade.model import FacadeFrame
+    from lidarmap.facade.observe import _ground_line
+
+    rng = np.random.default_rng(0)
+    street = np.column_stack([rng.uniform(0.0, 4.0, 400), rng.uniform(-3.5, -0.5, 400), np.zeros(400)])
+    street[:, 2] = 0.05 * street[:, 0]
+    stray = np.column_stack([np.repeat(np.arange(4.5, 10.0), 2), np.full(12, -1.5), np.full(12, 3.0)])
+    xyz = np.vstack([street, stray])
+    traj = Trajectory(time=np.array([0.0, 1.0]), xyz=np.array([[0.0, -8.0, 2.5], [10.0, -8.0, 2.5]]))
+    params = FacadeParams()
+    camp = campaign_data(xyz, np.zeros(len(xyz)), np.ones(len(xyz), dtype=bool), np.zeros(len(xyz), dtype=bool),
+                         traj, (0.0, 0.0, 0.0), traj.xyz, xyz.min(axis=0), params)
+    frame = FacadeFrame(origin=np.zeros(3), u=np.array([1.0, 0.0, 0.0]))
+    assert frame.to_facade(np.array([[0.0, -1.0, 0.0]]))[0, 2] > 0  # -y is in front of the wall
+    cols, cell = 100, 0.1
+    s_mid = (np.arange(cols) + 0.5) * cell
+    line = _ground_line(camp, frame, 0.0, 10.0, 0.0, cols, cell, params)
+    np.testing.assert_allclose(line, 0.05 * s_mid, atol=0.06)  # the 20th percentile of each metre: 1 cm low
+    every_bin = _ground_line(camp, frame, 0.0, 10.0, 0.0, cols, cell, params.updated(ground_min_points=1))
+    assert every_bin[s_mid > 5.0].min() > 2.5  # the stray points taken for the street

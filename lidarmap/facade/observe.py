@@ -482,6 +482,8 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
     opaque = None
     if ray:
         opaque = recessed_share(ev)
+        # at grazing incidence the reveals catch the pulses that pass a window: the share tells no leaf there
+        opaque[ev.cos_incidence < params.evidence.leaf_min_cos] = np.nan
         opaque[leaves] = 1.0  # a leaf returns every pulse, a few on the wall's side of pass_depth
     return _Visibility(values=values, ground_t=ground_t, below=below, unsampled=unsampled, weights=weights,
                        opaque=opaque, leaves=leaves, behind=behind_pts if ray else None)
@@ -679,7 +681,10 @@ def _ground_line(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, t
                  params: FacadeParams) -> np.ndarray:
     """Ground height (façade t) in front of every grid column: the 20th percentile height of the ground points in
     a band ``ground_band`` in front of the wall, per ``ground_bin`` along it, median-filtered over 3 bins and
-    interpolated; the grid's bottom ``t0`` where no ground point was measured."""
+    interpolated from the bins holding at least ``ground_min_points`` (a few points labelled ground on a van's roof
+    or a wall are not the street), extrapolated beyond them along the straight line fitted to them (a sloping
+    street: 4 m past the last bin a constant height put a door's foot 0.37 m above it, a window; dev seed 134);
+    the grid's bottom ``t0`` where no bin holds that many."""
     s_mid = s0 + (np.arange(cols) + 0.5) * cell
     if camp.ground_index is None:
         return np.full(cols, t0)
@@ -694,9 +699,19 @@ def _ground_line(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, t
         return np.full(cols, t0)
     bins = np.floor((g[:, 0] - s0) / params.openings.ground_bin).astype(np.int64)
     order = np.argsort(bins, kind="stable")
-    uniq, start = np.unique(bins[order], return_index=True)
-    low = np.array([np.quantile(g[order[a:b], 1], 0.2) for a, b in zip(start, np.append(start[1:], len(order)))])
+    uniq, start, count = np.unique(bins[order], return_index=True, return_counts=True)
+    full = count >= params.openings.ground_min_points
+    if not full.any():
+        return np.full(cols, t0)
+    low = np.array([np.quantile(g[order[a:a + n], 1], 0.2) for a, n in zip(start[full], count[full])])
+    uniq = uniq[full]
     if len(low) >= 3:  # a bin of mislabelled points (a car hid the street) must not lift the ground
         padded = np.concatenate([low[:1], low, low[-1:]])
         low = np.median(np.stack([padded[:-2], padded[1:-1], padded[2:]]), axis=0)
-    return np.interp(s_mid, s0 + (uniq + 0.5) * params.openings.ground_bin, low)
+    centres = s0 + (uniq + 0.5) * params.openings.ground_bin
+    line = np.interp(s_mid, centres, low)
+    if len(low) >= 2:  # beyond the first and last of those bins the street keeps its slope
+        slope, intercept = np.polyfit(centres, low, 1)
+        outside = (s_mid < centres[0]) | (s_mid > centres[-1])
+        line[outside] = intercept + slope * s_mid[outside]
+    return line

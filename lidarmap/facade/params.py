@@ -311,7 +311,10 @@ class OpeningParams:
         family's ground-floor windows on low sills reach 1.9 m, and with their sides placed from wall samples only
         they measure 1.9 m: at 1.9 four of them were doors on dev seed 21) ...
     ground_band (4.0): ground points up to this far in front of the wall give the ground line ...
-    ground_bin (1.0): ... one low (20th percentile) height per this length along the wall.
+    ground_bin (1.0): ... one low (20th percentile) height per this length along the wall ...
+    ground_min_points (10): ... from bins holding at least this many ground points; the others take the height
+        of their neighbours (a street hidden by parked cars left bins of 1-8 points labelled ground at 4-12 m:
+        a window on the first floor above them became a door, dev seed 136).
     door_min_width (0.7): ... and at least this wide (a door leaf with its frame; tall narrow windows on a low sill
         are windows) ...
     door_max_width (3.5): ... and at most this wide (shop windows and glazed fronts are wider: windows) ...
@@ -361,6 +364,7 @@ class OpeningParams:
         "door_floor_tol": ">= 0",
         "ground_band": ">= 0",
         "ground_bin": ">= 0",
+        "ground_min_points": ">= 1",
         "door_min_height": ">= 0",
         "hole_open_cells": ">= 0",
         "bridge_cells": ">= 0",
@@ -396,6 +400,7 @@ class OpeningParams:
     door_floor_tol: float = 0.25
     ground_band: float = 4.0
     ground_bin: float = 1.0
+    ground_min_points: int = 10
     door_min_height: float = 1.95
     hole_open_cells: int = 1
     bridge_cells: int = 2
@@ -445,6 +450,10 @@ class EvidenceParams:
         lines of a far façade lie further apart than a cell; the opening's edge lies somewhere in the gap).
     opaque_share (0.7): an opening whose passing pulses came back at least this often (mean over its cells) from
         just behind the wall (within layer_back) is closed by a leaf (a door; glass, rooms and dark openings less).
+    leaf_min_cos (0.2): ... counting only cells whose pulses met the wall at a cosine of incidence of at least this
+        (78°): more grazing, the reveal of an open or glazed window catches the pulses that pass it (a 15 cm reveal
+        shadows 0.7 m) and every window reads as closed (a glass window on a 0.85 m sill seen at 83° returned all of
+        them: a door, dev seed 122). A flush door seen at 76° still reads as a leaf (dev seed 128).
     door_leaf (True): find door leaves nearly flush with the wall from their returns' depth
         (:func:`lidarmap.facade.evidence.door_leaves`) ...
     leaf_offset (0.012): ... a door-sized rectangle reaching the ground whose returns lie on average at least
@@ -469,6 +478,7 @@ class EvidenceParams:
         "max_wall_share": "[0, 1]",
         "evidence_grow_cells": ">= 0",
         "opaque_share": "[0, 1]",
+        "leaf_min_cos": "[0, 1]",
         "leaf_offset": "> 0",
         "leaf_band": "> 0",
         "weight_pulses": "> 0",
@@ -487,6 +497,7 @@ class EvidenceParams:
     max_wall_share: float = 0.45
     evidence_grow_cells: int = 2
     opaque_share: float = 0.7
+    leaf_min_cos: float = 0.2
     door_leaf: bool = True
     leaf_offset: float = 0.012
     leaf_band: float = 0.08
