@@ -819,3 +819,75 @@ def test_a_found_window_refitted_below_an_opening_size_keeps_its_stored_rectangl
         assert [e.element_id for e in fused] == ([3] if kept else []), stored_box.bounds
         if kept:
             assert fused[0].polygon.equals_exact(stored_box, 1e-9), fused[0].polygon.bounds
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Points of a stored façade near the building's corners (issue 18, 2026-11-28)
+
+
+def _corner_case():
+    """A stored 10 m wall along x (outward normal -y) of a 10 x 8 m footprint behind it (y > 0)."""
+    from shapely.geometry import Polygon
+
+    from lidarmap.facade.model import Facade, FacadeFrame
+
+    wall = Facade(facade_id=0, frame=FacadeFrame(origin=np.zeros(3), u=np.array([1.0, 0.0, 0.0])), sigma=0.02,
+                  extent=(0.0, 10.0, 0.0, 6.0), footprint_edge=0, campaigns=[1])
+    footprint = Polygon([(0, 0), (10, 0), (10, 8), (0, 8)])
+    assert np.allclose(wall.frame.normal, [0, -1, 0])
+    return wall, footprint
+
+
+def test_a_stored_wall_leaves_the_first_metres_of_the_next_wall_round_the_corner_to_a_new_facade():
+    """Dev seed 145 (round 10): a campaign that was the first to see three side walls found them 2 m short of
+    their end, and missed the windows there, because the stored street wall beside each took every point within
+    association_distance (2 m) of its plane. A point closer to the footprint's boundary than to the wall's plane
+    by more than corner_margin lies on another wall; a room seen through a window deep behind the plane does not."""
+    from lidarmap.map.refine import assign_to_facades
+
+    wall, footprint = _corner_case()
+    y = np.linspace(0.05, 1.95, 20)
+    side = np.column_stack([np.full(20, 10.0), y, np.full(20, 3.0)])  # the side wall's first 2 m, x = 10
+    front = np.column_stack([np.linspace(0.5, 9.5, 10), np.zeros(10), np.full(10, 3.0)])
+    room = np.array([[5.0, 1.5, 2.0], [3.0, 1.9, 1.0]])  # behind a window, far from the other walls
+    xyz = np.vstack([side, front, room])
+    params = RefineParams()
+    owner = assign_to_facades([wall], xyz, footprint, params)
+    assert (owner[20:] == 0).all(), owner[20:]
+    assert (owner[:20][y <= params.corner_margin] == 0).all()
+    assert (owner[:20][y > params.corner_margin + 0.05] == -1).all(), owner[:20]
+    # without a footprint nothing tells the walls apart: the stored wall keeps them (the rule before 2026-11-28)
+    assert (assign_to_facades([wall], xyz, None, params) == 0).all()
+    assert (assign_to_facades([wall], xyz, footprint, dataclasses.replace(params, corner_margin=10.0)) == 0).all()
+
+
+def test_a_stored_wall_takes_no_points_past_its_footprint_corner():
+    """Along the wall, new points belong to a stored façade up to extend_margin beyond its extent, but past the
+    end of its footprint edge only up to corner_margin: beyond lie the next wall and the neighbours."""
+    from lidarmap.map.refine import assign_to_facades
+
+    wall, footprint = _corner_case()
+    xyz = np.array([[10.3, 0.0, 3.0], [11.0, 0.0, 3.0], [-0.3, 0.0, 3.0], [-1.5, 0.0, 3.0], [5.0, 0.0, 3.0]])
+    assert assign_to_facades([wall], xyz, footprint, RefineParams()).tolist() == [0, -1, 0, -1, 0]
+    longer = dataclasses.replace(wall, extent=(0.0, 11.2, 0.0, 6.0))  # a stored wall already past the corner
+    assert assign_to_facades([longer], xyz, footprint, RefineParams()).tolist() == [0, 0, 0, -1, 0]
+    assert assign_to_facades([wall], xyz, None, RefineParams()).tolist() == [0, 0, 0, 0, 0]
+
+
+def test_the_extent_grows_to_the_last_full_column_not_to_a_few_points_past_the_corner():
+    """Dev seed 144 (round 10): the wall's new samples ended at its corner, s = 20.29, but eight points 0.1-0.3 m
+    past it (misregistration, the next wall) set the 99.9 % quantile, and the grown extent's last 0.3 m, where pulses
+    pass the plane beyond the wall, became a strip of false windows. The extent grows to the outermost column
+    holding extend_column_share of the fullest one's cells."""
+    from lidarmap.map.refine import _extended_extent
+
+    rng = np.random.default_rng(0)
+    wall = np.column_stack([rng.uniform(10.0, 10.5, 5000), rng.uniform(0.0, 10.0, 5000)])
+    stray = np.column_stack([rng.uniform(10.6, 10.9, 8), rng.uniform(0.0, 10.0, 8)])
+    st = np.vstack([wall, stray])
+    params = RefineParams()
+    s1 = _extended_extent((0.0, 10.0, 0.0, 10.0), st, 0.1, params)[1]
+    assert 10.45 <= s1 <= 10.5, s1
+    assert _extended_extent((0.0, 10.0, 0.0, 10.0), st, 0.1, dataclasses.replace(params, extend_column_share=0.0))[1] > 10.6
+    s0 = _extended_extent((11.0, 20.0, 0.0, 10.0), np.column_stack([21.0 - st[:, 0], st[:, 1]]), 0.1, params)[0]
+    assert 10.4 <= s0 <= 10.55, s0  # the lower side the same way (moved by whole cells)

@@ -81,7 +81,7 @@ from lidarmap.facade.model import (
 from lidarmap.facade.observe import building_facades, layer_fit, observe_facade
 from lidarmap.facade.openings import box_sums, integral_image, side_wall_share
 from lidarmap.facade.params import FacadeParams, OpeningParams
-from lidarmap.facade.planes import fit_line_2d, footprint_edges
+from lidarmap.facade.planes import boundary_distance, fit_line_2d, footprint_edges
 from lidarmap.map.model import Building, BuildingMap, RoofPlane
 
 __all__ = ["RefineParams", "add_aerial", "refine_facade", "assign_to_facades", "fuse_gaussians",
@@ -101,10 +101,19 @@ class RefineParams:
         extend_margin (2.0): ... and within this distance beyond the façade's extent along the wall (or anywhere
             along its footprint edge): a campaign that sees more of a wall grows the façade instead of starting a
             new one (façade extraction splits walls at gaps > 2 m, ``facade_max_gap``).
+        corner_margin (0.5): ... unless the point lies closer to the footprint's boundary than to the façade's
+            plane by more than this: it is on another wall of the building. Near a corner the first metres of a
+            wall no campaign has stored yet lie within ``association_distance`` of the stored wall beside it; that
+            wall used to take them, so the new façade stopped 2 m short of its end and lost the windows there.
+            The margin is what a footprint may be off from the wall (cadastre: a few dm).
         extend_min (0.2): the extent grows where the new main-layer points reach at least this far beyond it
             (a few cm of misregistration must not add a row of empty cells every campaign) ...
         extend_min_area (1.0): ... and cover at least this many m² of grid cells there (a few stray points of a
             sparse side wall seen at a grazing angle grow nothing).
+        extend_column_share (0.1): along the wall the extent grows only as far as the outermost column of cells
+            that holds at least this share of the fullest new column's cells (a wall ends in a column over its
+            height; a few points past the corner used to drag the end out, and the pulses that passed the plane
+            beyond the wall made a strip of false windows there).
         normal_max_angle_deg (5.0): a new PCA normal further than this from the stored one is an outlier (a
             partial view, a different wall) and is not fused; the layers and elements still are.
         min_element_density (20.0): a campaign that samples a façade with fewer points per m² of the cells it saw
@@ -173,8 +182,10 @@ class RefineParams:
     constraints: ClassVar[dict[str, str]] = {
         "association_distance": ">= 0",
         "extend_margin": ">= 0",
+        "corner_margin": ">= 0",
         "extend_min": ">= 0",
         "extend_min_area": ">= 0",
+        "extend_column_share": "[0, 1]",
         "normal_max_angle_deg": ">= 0",
         "min_element_density": ">= 0",
         "main_layer_gate": ">= 0",
@@ -204,8 +215,10 @@ class RefineParams:
 
     association_distance: float = 2.0
     extend_margin: float = 2.0
+    corner_margin: float = 0.5
     extend_min: float = 0.2
     extend_min_area: float = 1.0
+    extend_column_share: float = 0.1
     normal_max_angle_deg: float = 5.0
     min_element_density: float = 20.0
     main_layer_gate: float = 0.3
@@ -398,12 +411,24 @@ def _extended_extent(extent: tuple[float, float, float, float], st: np.ndarray, 
         cells = np.unique(np.floor(beyond / cell).astype(np.int64), axis=0)
         if len(cells) < min_cells:
             continue
+        if axis == 0:
+            beyond = _supported_columns(beyond, cells, sign, cell, params.extend_column_share)
         reach = float(np.quantile(beyond[:, axis], 0.001 if sign < 0 else 0.999))
         if sign < 0:
             out[k] = extent[k] - math.ceil((extent[k] - reach) / cell - 1e-9) * cell
         else:
             out[k] = max(extent[k], reach)
     return out[0], out[1], out[2], out[3]
+
+
+def _supported_columns(st: np.ndarray, cells: np.ndarray, sign: int, cell: float, share: float) -> np.ndarray:
+    """The samples ``st`` up to the outermost column of cells (side ``sign``) holding at least ``share`` of the
+    fullest column's cells: a wall ends in a column of samples over its height, a handful of points past its corner
+    (the next wall, a neighbour's, misregistration) does not reach that far."""
+    columns, counts = np.unique(cells[:, 0], return_counts=True)
+    full = columns[counts >= share * counts.max()]
+    column = np.floor(st[:, 0] / cell).astype(np.int64)
+    return st[column <= full.max()] if sign > 0 else st[column >= full.min()]
 
 
 def pad_evidence(ev: FacadeEvidence | None, extent: tuple[float, float, float, float],
@@ -1296,26 +1321,33 @@ def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, po
 
 def _s_range(f: Facade, polygon, params: RefineParams) -> tuple[float, float]:
     """Where along the wall new points may still belong to façade ``f``: its extent +- ``extend_margin``, widened to
-    its footprint edge."""
+    its footprint edge but not beyond the edge's ends by more than ``corner_margin`` (past a corner lie the next
+    wall and the neighbours), unless the façade already reaches farther."""
     lo, hi = f.extent[0] - params.extend_margin, f.extent[1] + params.extend_margin
     if f.footprint_edge is not None and polygon is not None:
         edges = footprint_edges(polygon)
         if 0 <= f.footprint_edge < len(edges):
             ends = f.frame.to_facade(np.column_stack([edges[f.footprint_edge], np.zeros(2)]))[:, 0]
             lo, hi = min(lo, float(ends.min())), max(hi, float(ends.max()))
+            lo = max(lo, min(float(ends.min()) - params.corner_margin, f.extent[0]))
+            hi = min(hi, max(float(ends.max()) + params.corner_margin, f.extent[1]))
     return lo, hi
 
 
 def assign_to_facades(facades: list[Facade], xyz: np.ndarray, polygon, params: RefineParams) -> np.ndarray:
     """Index (into ``facades``) of the façade each point belongs to: within ``association_distance`` of its main
-    plane and within its range along the wall (:func:`_s_range`), the nearest plane winning; -1 for none."""
+    plane and within its range along the wall (:func:`_s_range`), not on another wall of the footprint
+    (``corner_margin``), the nearest plane winning; -1 for none."""
     best = np.full(len(xyz), -1, dtype=np.int64)
     best_d = np.full(len(xyz), np.inf)
+    to_boundary = boundary_distance(xyz[:, :2], polygon) if polygon is not None and len(facades) else None
     for k, f in enumerate(facades):
         sdt = f.frame.to_facade(xyz)
         lo, hi = _s_range(f, polygon, params)
         dist = np.abs(sdt[:, 2])
         ok = (dist <= params.association_distance) & (sdt[:, 0] >= lo) & (sdt[:, 0] <= hi) & (dist < best_d)
+        if to_boundary is not None:
+            ok &= to_boundary >= dist - params.corner_margin
         best[ok] = k
         best_d[ok] = dist[ok]
     return best
