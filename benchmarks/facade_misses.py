@@ -1,0 +1,153 @@
+"""Which openings the façade map misses or invents on development scenes, campaign by campaign (a diagnostic).
+
+``python benchmarks/facade_misses.py --seeds 138,139 [--family hard] [--campaigns 3] [--keep DIR]``
+
+For each development seed: simulate the scene (or reuse ``DIR/<family><seed>`` with ``--keep``), fuse its campaigns one
+by one as ``lidarmap map update`` does, and after each print the scores of benchmarks/facade_scores.py and one line
+per scored error:
+
+* ``MISS``: a truth window/door seen (>= 90 %) by the campaigns so far that no map opening of its kind matches
+  (IoU >= 0.5, one to one, as the scorer matches): its rectangle (façade s, t), how much of it each campaign saw,
+  and the best map opening of any kind over it;
+* ``FALSE``: a map window/door that no truth opening of its kind matches (nor overlaps one hardly seen), or one on
+  no truth façade at all.
+
+Reserved evaluation seeds (``lidarmap.sim.family.EVAL_SEEDS``) are refused: they are for benchmark figures only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+from shapely.geometry import box  # noqa: E402
+
+from lidarmap.facade.eval import (  # noqa: E402
+    greedy_match,
+    match_facade,
+    polygon_iou,
+    union_visibility,
+)
+from lidarmap.facade.model import ElementKind  # noqa: E402
+from lidarmap.facade.params import FacadeParams  # noqa: E402
+from lidarmap.io.footprints import read_footprints  # noqa: E402
+from lidarmap.io.las import read_las  # noqa: E402
+from lidarmap.io.trajectory import read_trajectory  # noqa: E402
+from lidarmap.map.model import BuildingMap  # noqa: E402
+from lidarmap.map.refine import RefineParams  # noqa: E402
+from lidarmap.map.update import refine_map  # noqa: E402
+from lidarmap.sim import load_truth, simulate  # noqa: E402
+from lidarmap.sim.family import EVAL_SEEDS, family_params  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import facade_scores  # noqa: E402  (benchmarks/facade_scores.py)
+
+OPENINGS = (ElementKind.WINDOW, ElementKind.DOOR)
+MIN_VISIBLE = 0.9  # as facade_scores / evaluate_facades
+
+
+def map_openings(m: BuildingMap, truth) -> tuple[dict[int, list[tuple[str, object]]], list[str]]:
+    """The map's windows/doors per matched truth façade id (kind, rectangle in that façade's s, t), and lines for
+    those on no truth façade."""
+    by_building = {str(b.id): b for b in truth.buildings}
+    per_facade: dict[int, list[tuple[str, object]]] = {}
+    orphans: list[str] = []
+    for b in m.buildings.values():
+        tb = by_building.get(str(b.building_id))
+        for f in b.facades:
+            tf = match_facade(f, tb.facades) if tb is not None else None
+            for e in f.elements:
+                if e.kind not in OPENINGS:
+                    continue
+                if tf is None:
+                    orphans.append(f"  FALSE building {b.building_id} façade {f.facade_id}: {e.kind.value} on no "
+                                   f"truth façade")
+                    continue
+                st = tf.to_facade(f.frame.polygon_to_crs(e.polygon))[:, :2]
+                per_facade.setdefault(tf.id, []).append((e.kind.value, box(*st.min(axis=0), *st.max(axis=0))))
+    return per_facade, orphans
+
+
+def error_lines(m: BuildingMap, truth, campaigns: list[int]) -> list[str]:
+    """One line per missed truth opening and per false map opening after ``campaigns``, matched as the scorer
+    matches them (``lidarmap.facade.eval``: per kind, one to one, best IoU first; a prediction over a hardly seen
+    truth element of its kind counts neither way)."""
+    seen = union_visibility(truth, campaigns)
+    each = {c: union_visibility(truth, [c]) for c in campaigns}
+    per_facade, lines = map_openings(m, truth)
+    for tf in truth.facades.values():
+        found = per_facade.get(tf.id, [])
+        for kind in ("window", "door"):
+            pred = [p for k, p in found if k == kind]
+            true = [te for te in tf.elements if te.kind == kind]
+            visible = [seen.get(te.id, 0.0) >= MIN_VISIBLE for te in true]
+            matches = greedy_match(pred, [te.polygon for te in true], 0.5)
+            matched_p, matched_t = {i for i, _, _ in matches}, {j for _, j, _ in matches}
+            for j, te in enumerate(true):
+                if not visible[j] or j in matched_t:
+                    continue
+                iou, other = max(((polygon_iou(p, te.polygon), k) for k, p in found), default=(0.0, "-"))
+                s0, s1, t0, t1 = te.rect
+                by = " ".join(f"{c}:{each[c].get(te.id, 0.0):.2f}" for c in campaigns)
+                lines.append(f"  MISS façade {tf.id} element {te.id} {kind}/{te.subtype} s {s0:.2f}-{s1:.2f} "
+                             f"t {t0:.2f}-{t1:.2f} depth {te.depth:+.2f} seen by campaign [{by}]; best map "
+                             f"opening IoU {iou:.2f} ({other})")
+            for i, p in enumerate(pred):
+                if i in matched_p or any(not visible[j] and polygon_iou(p, true[j].polygon) > 0.1
+                                         for j in range(len(true))):
+                    continue
+                iou, te = max(((polygon_iou(p, te.polygon), te) for te in tf.elements), key=lambda x: x[0],
+                              default=(0.0, None))
+                s0, t0, s1, t1 = p.bounds
+                lines.append(f"  FALSE façade {tf.id} {kind} s {s0:.2f}-{s1:.2f} t {t0:.2f}-{t1:.2f}; best truth "
+                             f"element IoU {iou:.2f}" + (f" ({te.kind})" if te is not None else ""))
+    return lines
+
+
+def diagnose(root: Path) -> list[str]:
+    """Fuse the campaigns of the scene in ``root`` one by one; the scores and errors after each."""
+    truth = load_truth(root)
+    m = BuildingMap(crs_wkt=truth.crs.to_wkt())
+    out, previous = [], None
+    for k, camp in enumerate(truth.campaigns, start=1):
+        cloud, traj = read_las(camp.laz), read_trajectory(camp.trajectory)
+        footprints = read_footprints(root / "footprints.geojson", crs=cloud.crs)
+        m = refine_map(m, cloud, traj, footprints, FacadeParams(), RefineParams(), camp.id, seed=0)
+        campaigns = [c.id for c in truth.campaigns[:k]]
+        s = facade_scores.score_map(list(m.buildings.values()), truth, campaigns)
+        drop = " DROP" if previous is not None and s.f1 < previous - 1e-12 else ""
+        out.append(f"seed {truth.doc['seed']} after {k} ({facade_scores._setup(truth.doc['campaigns'][k - 1])}): "
+                   f"W+D F1 {s.f1:.3f}, windows {s.window['tp']}/{s.window['fp']}/{s.window['fn']}, doors "
+                   f"{s.door['tp']}/{s.door['fp']}/{s.door['fn']} (tp/fp/fn), door F1 {facade_scores._door_f1(s):.3f}"
+                   f"{drop}")
+        out += error_lines(m, truth, campaigns)
+        previous = s.f1
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seeds", required=True, help="comma-separated development seeds")
+    ap.add_argument("--family", default="hard", choices=("hard", "standard"))
+    ap.add_argument("--campaigns", type=int, default=3)
+    ap.add_argument("--keep", type=Path, default=None, help="keep (or reuse) the simulated scenes under this folder")
+    args = ap.parse_args(argv)
+    seeds = [int(x) for x in args.seeds.split(",")]
+    reserved = sorted(set(seeds) & set(EVAL_SEEDS))
+    if reserved:
+        ap.error(f"seeds {reserved} are reserved for evaluation (lidarmap.sim.family.EVAL_SEEDS): not diagnosed")
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in seeds:
+            root = (args.keep or Path(tmp)) / f"{args.family}{seed}"
+            if not (root / "truth" / "scene.json").exists():
+                simulate(str(root), family_params(args.family, seed, campaigns=args.campaigns))
+            print("\n".join(diagnose(root)), flush=True)
+
+
+if __name__ == "__main__":
+    main()
