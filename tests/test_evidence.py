@@ -798,3 +798,38 @@ def test_ground_line_drops_sparse_bins_and_keeps_the_street_slope_beyond_its_las
     np.testing.assert_allclose(line, 0.05 * s_mid, atol=0.06)  # the 20th percentile of each metre: 1 cm low
     every_bin = _ground_line(camp, frame, 0.0, 10.0, 0.0, cols, cell, params.updated(ground_min_points=1))
     assert every_bin[s_mid > 5.0].min() > 2.5  # the stray points taken for the street
+
+
+def test_occluders_between_a_wall_and_sensors_beyond_its_end_are_gathered():
+    """Dev seed 147 (2026-11-28): a side wall seen from a street that runs past its end, 16 m away along the wall.
+    The returns of whatever stood between the wall and the street lay outside the slab over the wall's own span
+    that the occlusion step gathered, so the pulses they stopped looked like pulses that crossed the wall and
+    returned nothing: a 0.4 m column of "missed" pulses, two false windows on a blank wall. The slab now reaches the
+    sensors that saw the wall."""
+    from types import SimpleNamespace
+
+    from lidarmap.facade.campaign import prepare_campaign
+    from lidarmap.facade.model import FacadeFrame
+    from lidarmap.facade.observe import _around_ids
+
+    rng = np.random.default_rng(0)
+    speed, sensor_y, sensor_z = 8.0, -10.0, 2.5
+    xs = np.arange(0.0, 28.0, 0.2)
+    o, v, t = _profiles(xs, sensor_y, sensor_z, speed, step_deg=0.5, yaw_deg=40.0, lo_deg=0.0, hi_deg=160.0)
+    surfaces = {"wall": _plane(o, v, 0, 30.0, (4.0, 16.0), (0.0, 9.0)),  # faces -x, its span y 4..16
+                "post": _plane(o, v, 1, -5.0, (26.0, 27.0), (0.0, 9.0)),  # between it and the street, off its span
+                "ground": _plane(o, v, 2, 0.0, (-10.0, 40.0), (-20.0, 20.0))}
+    footprint = [[30.0, 4.0], [42.0, 4.0], [42.0, 16.0], [30.0, 16.0]]
+    cloud, traj, _ = _cloud(o, v, t, surfaces, {"wall": 6, "post": 1, "ground": 2}, rng, footprint, speed,
+                            sensor_y, sensor_z, xs[0])
+    camp = prepare_campaign(cloud, traj, FacadeParams())
+    frame = FacadeFrame(origin=np.array([30.0, 16.0, 0.0]) + OFFSET, u=np.array([0.0, -1.0, 0.0]))
+    assert np.allclose(frame.normal, [-1.0, 0.0, 0.0])  # towards the street's side of the wall
+    sdt = frame.to_facade(camp.xyz)
+    on_wall = np.flatnonzero(np.abs(sdt[:, 2]) < 0.05)
+    assert len(on_wall) > 100
+    surf = SimpleNamespace(extent=(0.0, 12.0, 0.0, 9.0), sensors=camp.sensors[on_wall])
+    around, _ = _around_ids(camp, frame, surf, FacadeParams())
+    local = camp.xyz[around] - OFFSET
+    post = (np.abs(local[:, 1] + 5.0) < 0.05) & (local[:, 0] > 25.9) & (local[:, 0] < 27.1) & (local[:, 2] > 0.2)
+    assert post.sum() > 20, post.sum()

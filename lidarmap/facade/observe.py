@@ -374,6 +374,8 @@ def _around_ids(camp: CampaignData, frame: FacadeFrame, surf: _Surface,
                            camp.limits[0] * params.occlusion.reach_margin + 1.0))
     back = params.occlusion.through_max_depth
     corners = frame.to_crs(np.array([[s0, 0, front_dist], [s1, 0, front_dist], [s0, 0, -back], [s1, 0, -back]]))
+    # a wall seen from beyond its end: the occluders stand between it and the sensors, off its own span
+    corners = np.vstack([corners, surf.sensors[np.isfinite(surf.sensors).all(axis=1)]])
     x0, y0 = corners[:, :2].min(axis=0) - 1.0
     x1, y1 = corners[:, :2].max(axis=0) + 1.0
     around = camp.nonground_ids[camp.nonground_index.query_box(x0, y0, x1, y1)]
