@@ -25,9 +25,8 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from shapely.geometry import box  # noqa: E402
-
 from lidarmap.facade.eval import (  # noqa: E402
+    _to_truth_rect,  # the scorer's own projection of a map rectangle into the truth façade
     greedy_match,
     match_facade,
     polygon_iou,
@@ -68,8 +67,7 @@ def map_openings(m: BuildingMap, truth) -> tuple[dict[int, list[tuple[str, objec
                     orphans.append(f"  FALSE building {b.building_id} façade {f.facade_id}: {e.kind.value} on no "
                                    f"truth façade")
                     continue
-                st = tf.to_facade(f.frame.polygon_to_crs(e.polygon))[:, :2]
-                per_facade.setdefault(tf.id, []).append((e.kind.value, box(*st.min(axis=0), *st.max(axis=0))))
+                per_facade.setdefault(tf.id, []).append((e.kind.value, _to_truth_rect(f, e.polygon, tf, None)))
     return per_facade, orphans
 
 
