@@ -133,6 +133,33 @@ def test_window_split_by_an_old_occlusion_merges_and_its_unknown_gap_goes():
     assert unknown == []
 
 
+def test_a_new_shape_over_two_windows_with_wall_between_does_not_merge_them():
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (20, 40))
+    left, right, full = box(0.5, 0.5, 1.5, 1.5), box(2.1, 0.5, 3.1, 1.5), box(0.4, 0.5, 3.2, 1.5)
+    # campaign 1 saw two windows and the 0.6 m pier between them as wall (weight 2); campaign 2 read the pier as
+    # glass with weight 1 and found one wide window
+    w1 = (grid.raster(left) | grid.raster(right)).astype(int)
+    o1 = 2 * (1 - w1)
+    w2 = grid.raster(full).astype(int)
+    votes = _Votes(grid, w1 + w2, o1 + (1 - w2), np.full(grid.shape, 2), np.ones(grid.shape, int),
+                   np.ones(grid.shape, bool), window_new=w2)
+    stored = [Element(3, ElementKind.WINDOW, left, None, 0.0, campaigns=[1]),
+              Element(5, ElementKind.WINDOW, right, None, 0.0, campaigns=[1])]
+    new = [Element(0, ElementKind.WINDOW, full, None, 0.0, n_points=100, campaigns=[2])]
+    fused, changed = _fuse_openings(stored, new, votes, _Ids(stored), RefineParams(), (0.0, 4.0, 0.0, 2.0))
+    assert sorted(e.element_id for e in fused) == [3, 5] and changed == {3, 5}
+    by_id = {e.element_id: e for e in fused}
+    assert by_id[3].polygon.bounds[2] == pytest.approx(1.5) and by_id[5].polygon.bounds[0] == pytest.approx(2.1)
+    assert by_id[3].campaigns == by_id[5].campaigns == [1, 2]
+    # the same shapes where the pier was hidden in campaign 1 (no wall votes there): one window, as before
+    hidden = _Votes(grid, w1 + w2, (o1 * (grid.raster(box(1.5, 0.0, 2.1, 2.0)) == 0)) + (1 - w2),
+                    np.full(grid.shape, 2), np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=w2)
+    fused, _ = _fuse_openings(stored, new, hidden, _Ids(stored), RefineParams(), (0.0, 4.0, 0.0, 2.0))
+    assert [e.element_id for e in fused] == [3] and fused[0].polygon.bounds[0] < 0.6 < 3.0 < fused[0].polygon.bounds[2]
+
+
 def test_opening_type_and_existence_follow_evidence_weight_not_campaign_count():
     from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
 
@@ -455,6 +482,47 @@ def test_a_window_found_in_part_takes_the_sides_of_the_stored_unknown_region_it_
     assert len(fused) == 1 and polygon_iou(fused[0].polygon, window) >= 0.9, fused[0].polygon.bounds
     alone, _ = _fuse_openings([], new, votes, _Ids(unknown), RefineParams(), extent)  # the strip, as before
     assert len(alone) == 1 and polygon_iou(alone[0].polygon, window) < 0.5
+
+
+def test_a_new_window_in_a_stored_shadow_does_not_stretch_over_the_unvoted_cells_to_its_sides():
+    """Campaign 1 stored a tree's shadow as an unknown region and voted nothing there; campaign 2 sees one window at
+    the shadow's right end. The shadow's far sides are candidates, but the cells up to them carry no vote: the
+    window keeps its own extent instead of stretching across them to the shadow's left side."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (50, 90))
+    shadow, window = box(1.6, 0.0, 7.7, 4.5), box(4.0, 1.7, 4.9, 2.9)
+    w_new = grid.raster(window).astype(int)
+    o = 2 * (~grid.raster(shadow)).astype(int)  # wall all round the shadow
+    votes = _Votes(grid, w_new, o, np.full(grid.shape, 2), np.ones(grid.shape, int), np.ones(grid.shape, bool),
+                   window_new=w_new)
+    unknown = [Element(7, ElementKind.UNKNOWN, shadow, None, math.inf, campaigns=[1])]
+    new = [Element(0, ElementKind.WINDOW, window, None, 0.1, campaigns=[2])]
+    fused, _ = _fuse_openings([], new, votes, _Ids(unknown), RefineParams(), (0.0, 9.0, 0.0, 5.0), unknown)
+    assert len(fused) == 1 and fused[0].polygon.bounds == pytest.approx(window.bounds)
+
+
+def test_a_stored_window_seen_in_part_grows_to_what_a_later_campaign_left_as_an_unknown_region():
+    """Campaign 1 saw the top 0.5 m of a window above a parked car; campaign 2 saw all of it but a pole's shadow
+    beside it kept its border open, so it stored an unknown region there and proposed no window. The stored window
+    takes the region's sides where campaign 2's votes support them, and keeps its own where they do not."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 50))
+    window, top = box(1.0, 0.2, 3.0, 1.9), box(1.0, 1.4, 3.0, 1.9)
+    region = box(1.0, 0.2, 3.5, 1.9)  # the window and the shadow right of it
+    w1, w2 = grid.raster(top).astype(int), grid.raster(window).astype(int)
+    around = ~grid.raster(region)
+    votes = _Votes(grid, w1 + w2, 2 * around.astype(int), np.full(grid.shape, 2), np.ones(grid.shape, int),
+                   np.ones(grid.shape, bool), window_new=w2)
+    stored = [Element(4, ElementKind.WINDOW, top, None, 0.0, campaigns=[1])]
+    unknown = [Element(0, ElementKind.UNKNOWN, region, None, math.inf, campaigns=[2])]
+    extent = (0.0, 5.0, 0.0, 4.0)
+    fused, changed = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), extent, new_unknown=unknown)
+    assert [e.element_id for e in fused] == [4] and changed == {4}
+    assert fused[0].polygon.bounds == pytest.approx(window.bounds)
+    alone, _ = _fuse_openings(stored, [], votes, _Ids(stored), RefineParams(), extent)  # without: the strip stays
+    assert alone[0].polygon.bounds[1] > 1.2
 
 
 def test_a_sliver_cut_by_the_facade_extent_is_not_an_opening():

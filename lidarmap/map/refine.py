@@ -62,6 +62,7 @@ from typing import ClassVar
 import numpy as np
 import shapely
 from scipy import ndimage
+from scipy.sparse.csgraph import connected_components
 from shapely.geometry import Polygon, box
 
 from lidarmap.config import check_params
@@ -702,8 +703,12 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     w = _own_votes(votes.window[patch], votes.objects[patch], claimed, share_old / total > 0.5)
     cols = [g.line(b, 0) - c_lo + k for b in np.r_[lines[:, 0], lines[:, 2]] for k in range(-off, off + 1)]
     rows = [g.line(b, 1) - r_lo + k for b in np.r_[lines[:, 1], lines[:, 3]] for k in range(-off, off + 1)]
-    # ties go to the extent the stored shapes' evidence claims; a new shape alone keeps the plain line order
-    rect, eps = refit_rectangle(w, votes.objects[patch], cols, rows, share / total if n_old else None)
+    # ties go to the extent the stored shapes' evidence claims; a new shape alone keeps the plain line order, except
+    # against the sides of a stored unknown region: cells no campaign voted on tie, and the first line in order (the
+    # region's far side) stretched the shape over them (issue 18 round 11, dev seed 157: a window 0.94 m wide grew
+    # 2.25 m to the left side of a tree's shadow, across a pier and the next window)
+    tie_to_shapes = n_old > 0 or (extra_bounds is not None and len(extra_bounds) > 0)
+    rect, eps = refit_rectangle(w, votes.objects[patch], cols, rows, share / total if tie_to_shapes else None)
     if rect is None or eps > params.max_window_uncertainty:
         return None
     weights = np.array([_weight(m) for m in members], dtype=np.float64)
@@ -799,16 +804,22 @@ def opening_uncertainty(polygon, evidence: FacadeEvidence, line_offsets: int = 1
     return eps
 
 
-def _refit_stored(e: Element, votes: _Votes, params: RefineParams) -> tuple[Polygon, float] | None:
+def _refit_stored(e: Element, votes: _Votes, params: RefineParams,
+                  extra_bounds: np.ndarray | None = None) -> tuple[Polygon, float] | None:
     """A stored opening's rectangle refitted on the fused votes: each side on the grid lines from
     ``line_offsets`` cells outside it to anywhere inside (so a wall strip a too-wide rectangle holds is shed, not the
-    opening), ties going to the stored extent; a side left on (± ``line_offsets`` of) its stored line keeps its
-    stored sub-cell position. ``None`` without window weight around it."""
+    opening), or on a side of ``extra_bounds`` (rows of s_lo, t_lo, s_hi, t_hi: the new campaign's unknown regions
+    over it, :func:`_unknown_bounds`; ± ``line_offsets``), ties going to the stored extent; a side left on
+    (± ``line_offsets`` of) its stored line keeps its stored sub-cell position. ``None`` without window weight
+    around it."""
     g = votes.grid
     s_lo, t_lo, s_hi, t_hi = e.polygon.bounds
     off, pad = params.line_offsets, params.line_offsets + 2
-    r_lo, c_lo = max(g.line(t_lo, 1) - pad, 0), max(g.line(s_lo, 0) - pad, 0)
-    r_hi, c_hi = min(g.line(t_hi, 1) + pad, g.shape[0]), min(g.line(s_hi, 0) + pad, g.shape[1])
+    reach = np.array([[s_lo, t_lo, s_hi, t_hi]]) if extra_bounds is None or len(extra_bounds) == 0 else \
+        np.vstack([[s_lo, t_lo, s_hi, t_hi], extra_bounds])
+    r_lo, c_lo = max(g.line(reach[:, 1].min(), 1) - pad, 0), max(g.line(reach[:, 0].min(), 0) - pad, 0)
+    r_hi = min(g.line(reach[:, 3].max(), 1) + pad, g.shape[0])
+    c_hi = min(g.line(reach[:, 2].max(), 0) + pad, g.shape[1])
     if r_hi <= r_lo or c_hi <= c_lo:
         return None
     patch = (slice(r_lo, r_hi), slice(c_lo, c_hi))
@@ -816,8 +827,11 @@ def _refit_stored(e: Element, votes: _Votes, params: RefineParams) -> tuple[Poly
     o = votes.objects[patch]
     w = _own_votes(votes.window[patch], o, stored, stored)
     side_lines = [g.line(s_lo, 0) - c_lo, g.line(s_hi, 0) - c_lo, g.line(t_lo, 1) - r_lo, g.line(t_hi, 1) - r_lo]
-    cols = range(side_lines[0] - off, side_lines[1] + off + 1)
-    rows = range(side_lines[2] - off, side_lines[3] + off + 1)
+    cols = list(range(side_lines[0] - off, side_lines[1] + off + 1))
+    rows = list(range(side_lines[2] - off, side_lines[3] + off + 1))
+    for b in reach[1:]:
+        cols += [g.line(x, 0) - c_lo + k for x in (b[0], b[2]) for k in range(-off, off + 1)]
+        rows += [g.line(x, 1) - r_lo + k for x in (b[1], b[3]) for k in range(-off, off + 1)]
     rect, eps = refit_rectangle(w, o, cols, rows, stored.astype(np.float64))
     if rect is None:
         return None
@@ -841,7 +855,7 @@ def _holds_an_opening(support: np.ndarray, cells: np.ndarray, cell: float, min_s
 
 
 def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size: float = 0.0,
-                      min_fill: float = 0.0) -> Element | None:
+                      min_fill: float = 0.0, extra_bounds: np.ndarray | None = None) -> Element | None:
     """A stored window/door the new campaign saw but did not find: ``None`` when the wall evidence (all campaigns so
     far) over its support -- the cells of it some campaign saw as opening -- exceeds its opening evidence there,
     or equals it on a support smaller than an opening (:func:`_holds_an_opening`; no support:
@@ -850,7 +864,8 @@ def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size:
     campaign reads as wall scan line by scan line leaves a striped vote map whose ε is high while the opening
     evidence still outweighs the wall's. A refit that keeps less than ``refit_keep_share`` of the opening evidence is
     not used: the stored rectangle stays; so does one keeping more that leaves a side shorter than ``min_size``,
-    unless the stored rectangle is such a sliver itself (then ``None``: a sliver is no opening)."""
+    unless the stored rectangle is such a sliver itself (then ``None``: a sliver is no opening). ``extra_bounds``:
+    more candidate sides for the refit (:func:`_refit_stored`)."""
     g = votes.grid
     cells = g.raster(e.polygon)
     if not cells.any() or votes.seen_new[cells].astype(bool).mean() < params.seen_fraction:
@@ -865,7 +880,7 @@ def _rescored_opening(e: Element, votes: _Votes, params: RefineParams, min_size:
     wall = float(votes.objects[support].sum())
     if wall > opening or (wall == opening and not _holds_an_opening(support, cells, g.cell, min_size, min_fill)):
         return None
-    refit = _refit_stored(e, votes, params)
+    refit = _refit_stored(e, votes, params, extra_bounds)
     if refit is None:
         return e
     poly, eps = refit
@@ -892,23 +907,91 @@ def _unknown_bounds(shapes: list[Element], unknown: list[Element]) -> np.ndarray
     return np.array(out, dtype=np.float64).reshape(-1, 4)
 
 
+def _band_between(a, b):
+    """The strip of façade between two disjoint rectangles side by side or one above the other (over the span they
+    share); ``None`` when they overlap or lie diagonally apart."""
+    a0, a1, a2, a3 = a.bounds
+    b0, b1, b2, b3 = b.bounds
+    s_lo, s_hi, t_lo, t_hi = max(a0, b0), min(a2, b2), max(a1, b1), min(a3, b3)
+    if t_hi > t_lo and s_lo >= s_hi:  # side by side: the gap runs from the left one's right side to the other's left
+        return box(s_hi, t_lo, s_lo, t_hi)
+    if s_hi > s_lo and t_lo >= t_hi:
+        return box(s_lo, t_hi, s_hi, t_lo)
+    return None
+
+
+def _separated_by_wall(a: Element, b: Element, votes: _Votes) -> bool:
+    """Whether two stored openings are two objects by the fused votes: the strip between them holds more wall than
+    opening evidence (diagonal neighbours are always two). Overlapping ones, or a strip of no cells or no wall
+    weight (a pole hid it), are one object."""
+    if a.polygon.intersects(b.polygon):
+        return False
+    band = _band_between(a.polygon, b.polygon)
+    if band is None:
+        return True
+    cells = votes.grid.raster(band)
+    return bool(cells.any()) and outweighed_by_wall(votes.window, votes.objects, cells)
+
+
+def _clip_to(e: Element, region) -> Element | None:
+    """``e`` cut to the rectangle ``region`` (points scaled by the area kept); ``None`` when nothing is left."""
+    piece = e.polygon.intersection(region)
+    if piece.is_empty or piece.area <= 0:
+        return None
+    piece = box(*piece.bounds)
+    return dataclasses.replace(e, polygon=piece, n_points=int(round(e.n_points * piece.area / e.polygon.area)))
+
+
+def _split_bridged(olds: list[Element], news: list[Element], votes: _Votes) -> list[tuple[list[Element], list[Element]]]:
+    """A matched group cut into the objects it holds. A new shape over two stored openings with wall between them
+    (:func:`_separated_by_wall`) saw them as one -- a pier it read as glass, a reveal that hid it -- and must not
+    merge them into one rectangle (issue 18 round 11, dev seed 154: two windows 0.57 m apart, the pier wall by 54
+    votes to 26, fused into one 2.7 m wide). The stored openings are grouped by that test; each group takes the part
+    of the new shapes within half the gap to the nearest other group."""
+    n = len(olds)
+    if n < 2 or not news:
+        return [(olds, news)]
+    one = np.array([[i == j or not _separated_by_wall(a, b, votes) for j, b in enumerate(olds)]
+                    for i, a in enumerate(olds)])
+    _, label = connected_components(one, directed=False)
+    groups: dict[int, list[Element]] = {}
+    for k, e in enumerate(olds):
+        groups.setdefault(int(label[k]), []).append(e)
+    if len(groups) == 1:
+        return [(olds, news)]
+    hulls = {g: box(*shapely.union_all([e.polygon for e in members]).bounds) for g, members in groups.items()}
+    out = []
+    for g, members in groups.items():
+        reach = min(hulls[g].distance(h) for k, h in hulls.items() if k != g) / 2.0
+        region = hulls[g].buffer(reach, join_style="mitre")
+        pieces = [p for p in (_clip_to(e, region) for e in news) if p is not None]
+        out.append((members, pieces))
+    return out
+
+
 def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _Ids, params: RefineParams,
                    extent: tuple[float, float, float, float],
                    unknown: list[Element] | None = None, min_size: float = 0.0,
                    doors: OpeningParams | None = None,
-                   min_fill: float = 0.0) -> tuple[list[Element], set[int]]:
+                   min_fill: float = 0.0, new_unknown: list[Element] | None = None) -> tuple[list[Element], set[int]]:
     """Windows and doors after the fusion, and the ids of those that changed (merged, added or re-scored). A new
     shape without a stored match may take the sides of a stored ``unknown`` region it lies in
     (:func:`_unknown_bounds`); a fused shape with a side below ``min_size`` is dropped. ``doors``: the
     detection's door size limits (:func:`_kind_voters`; ``None``: every matched shape votes on the kind);
-    ``min_fill``: the detection's ``Ta`` (:func:`_holds_an_opening`)."""
+    ``min_fill``: the detection's ``Ta`` (:func:`_holds_an_opening`). A stored opening the new campaign saw without
+    finding a shape there, but lying in one of its ``new_unknown`` regions (a hole whose border it could not
+    close), is refitted with that region's sides among the candidates: the campaign may have seen more of it (issue
+    18 round 11, dev seed 155: campaign 1 saw the top 0.5 m of a window over a parked car, campaign 2 saw all of it
+    beside a pole's shadow and stored it as an unknown region; the window stayed 0.5 m tall)."""
     out: list[Element] = []
     changed: set[int] = set()
-    for oi, ni in _clusters(old, new, lambda e: "opening", params):
-        olds, news = [old[i] for i in oi], [new[j] for j in ni]
+    groups = [part for oi, ni in _clusters(old, new, lambda e: "opening", params)
+              for part in _split_bridged([old[i] for i in oi], [new[j] for j in ni], votes)]
+    for olds, news in groups:
         if not news:
             for e in olds:
-                rescored = _rescored_opening(e, votes, params, min_size, min_fill)
+                extra = _unknown_bounds([e], new_unknown) if new_unknown else None
+                rescored = _rescored_opening(e, votes, params, min_size, min_fill, extra)
                 if rescored is not None:
                     out.append(rescored)
                     if rescored is not e:
@@ -1069,7 +1152,8 @@ def _fuse_elements(stored: Facade, obs: Facade, layer_map: dict[int, int], votes
 
     openings, changed = _fuse_openings(of(stored.elements, *OPENINGS), of(new, *OPENINGS), votes, ids, params,
                                        obs.extent, [e for e in stored.elements if e.is_unknown],
-                                       fparams.openings.min_opening_size, fparams.openings, fparams.openings.Ta)
+                                       fparams.openings.min_opening_size, fparams.openings, fparams.openings.Ta,
+                                       [e for e in new if e.is_unknown])
     min_area = fparams.objects.min_object_area
     structures, changed_s = _fuse_structures(of(stored.elements, ElementKind.STRUCTURE),
                                              of(new, ElementKind.STRUCTURE), votes, ids, params, min_area)
