@@ -665,6 +665,12 @@ def _member_weights(members: list[Element], n_old: int, votes: _Votes, within: n
     return out
 
 
+def _lines_near(g: _Grid, values, axis: int, lo: int, off: int) -> list[int]:
+    """Grid line indices (relative to ``lo``) within ``off`` lines of each coordinate in ``values`` (axis 0: s, 1: t):
+    the candidate sides a refit may take from a shape's or a region's bounds."""
+    return [g.line(float(x), axis) - lo + k for x in values for k in range(-off, off + 1)]
+
+
 def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: RefineParams,
                    extent: tuple[float, float, float, float], n_old: int = 0,
                    extra_bounds: np.ndarray | None = None, min_size: float = 0.0,
@@ -701,12 +707,13 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
             share_old += weight * cells
     total = max(sum(evidence), 1e-12)
     w = _own_votes(votes.window[patch], votes.objects[patch], claimed, share_old / total > 0.5)
-    cols = [g.line(b, 0) - c_lo + k for b in np.r_[lines[:, 0], lines[:, 2]] for k in range(-off, off + 1)]
-    rows = [g.line(b, 1) - r_lo + k for b in np.r_[lines[:, 1], lines[:, 3]] for k in range(-off, off + 1)]
+    cols = _lines_near(g, np.r_[lines[:, 0], lines[:, 2]], 0, c_lo, off)
+    rows = _lines_near(g, np.r_[lines[:, 1], lines[:, 3]], 1, r_lo, off)
     # ties go to the extent the stored shapes' evidence claims; a new shape alone keeps the plain line order, except
     # against the sides of a stored unknown region: cells no campaign voted on tie, and the first line in order (the
     # region's far side) stretched the shape over them (issue 18 round 11, dev seed 157: a window 0.94 m wide grew
-    # 2.25 m to the left side of a tree's shadow, across a pier and the next window)
+    # 2.25 m to the left side of the region campaign 1 could not see -- a tree and a van stood in front -- across a
+    # pier and the next window)
     tie_to_shapes = n_old > 0 or (extra_bounds is not None and len(extra_bounds) > 0)
     rect, eps = refit_rectangle(w, votes.objects[patch], cols, rows, share / total if tie_to_shapes else None)
     if rect is None or eps > params.max_window_uncertainty:
@@ -829,9 +836,8 @@ def _refit_stored(e: Element, votes: _Votes, params: RefineParams,
     side_lines = [g.line(s_lo, 0) - c_lo, g.line(s_hi, 0) - c_lo, g.line(t_lo, 1) - r_lo, g.line(t_hi, 1) - r_lo]
     cols = list(range(side_lines[0] - off, side_lines[1] + off + 1))
     rows = list(range(side_lines[2] - off, side_lines[3] + off + 1))
-    for b in reach[1:]:
-        cols += [g.line(x, 0) - c_lo + k for x in (b[0], b[2]) for k in range(-off, off + 1)]
-        rows += [g.line(x, 1) - r_lo + k for x in (b[1], b[3]) for k in range(-off, off + 1)]
+    cols += _lines_near(g, np.r_[reach[1:, 0], reach[1:, 2]], 0, c_lo, off)
+    rows += _lines_near(g, np.r_[reach[1:, 1], reach[1:, 3]], 1, r_lo, off)
     rect, eps = refit_rectangle(w, o, cols, rows, stored.astype(np.float64))
     if rect is None:
         return None
@@ -981,8 +987,9 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
     ``min_fill``: the detection's ``Ta`` (:func:`_holds_an_opening`). A stored opening the new campaign saw without
     finding a shape there, but lying in one of its ``new_unknown`` regions (a hole whose border it could not
     close), is refitted with that region's sides among the candidates: the campaign may have seen more of it (issue
-    18 round 11, dev seed 155: campaign 1 saw the top 0.5 m of a window over a parked car, campaign 2 saw all of it
-    beside a pole's shadow and stored it as an unknown region; the window stayed 0.5 m tall)."""
+    18 round 11, dev seed 155: campaign 1 saw only the top 0.5 m of a window, the rest lay in a region it could not
+    see; campaign 2 saw all of it but not the 1.5 m strip beside it, and stored it as an unknown region; the window
+    stayed 0.5 m tall)."""
     out: list[Element] = []
     changed: set[int] = set()
     groups = [part for oi, ni in _clusters(old, new, lambda e: "opening", params)
