@@ -48,6 +48,7 @@ VAN = (4.0, 6.2, -3.0, -1.2, 0.0, 2.7)  # x0, x1, y0, y1, z0, z1: hides the grou
 BALCONY_SLAB = (9.5, 13.2, -1.0, 0.0, 5.6, 5.75)
 BALCONY_RAIL = (9.5, 13.2, -1.0, -0.95, 5.75, 6.3)
 INTERIOR_Y = 6.0
+TREE = (5.9, 9.3, -3.2, -2.8, 0.0, 14.0)  # a crown as tall as the wall: hides a 3.4 m strip of it from the street
 SENSOR_Y, SENSOR_Z = -8.0, 2.5
 
 
@@ -85,7 +86,7 @@ def _plane_hits(o, v, axis, value, bounds_a, bounds_b, holes=()):
 
 def make_scene(rotation_deg: float = 30.0, offset=(412000.0, 5651000.0, 55.0), van: bool = True,
                interior: bool = True, step: float = 0.05, angle_step_deg: float = 0.2, noise: float = 0.005,
-               seed: int = 0):
+               seed: int = 0, tree: bool = False):
     """Ray-cast the scene; returns (PointCloud, Trajectory, Footprints, truth dict in CRS coordinates)."""
     rng = np.random.default_rng(seed)
     speed = 10.0
@@ -108,6 +109,8 @@ def make_scene(rotation_deg: float = 30.0, offset=(412000.0, 5651000.0, 55.0), v
     }
     if van:
         cand["van"] = _box_hits(o, v, VAN)
+    if tree:
+        cand["tree"] = _box_hits(o, v, TREE)
     if interior:
         cand["interior"] = _plane_hits(o, v, 1, INTERIOR_Y, WALL[:2], WALL[2:])
     names = list(cand)
@@ -118,7 +121,8 @@ def make_scene(rotation_deg: float = 30.0, offset=(412000.0, 5651000.0, 55.0), v
     o, v, t, which, best = o[hit], v[hit], t[hit], which[hit], best[hit]
     best = best + rng.normal(0.0, noise, len(best))
     local = o + best[:, None] * v
-    cls_of = {"wall": 6, "door": 6, "slab": 6, "rail": 6, "ground": 2, "floor": 1, "van": 1, "interior": 6}
+    cls_of = {"wall": 6, "door": 6, "slab": 6, "rail": 6, "ground": 2, "floor": 1, "van": 1, "interior": 6,
+              "tree": 1}
     classification = np.array([cls_of[k] for k in names], dtype=np.uint8)[which]
 
     a = math.radians(rotation_deg)
@@ -464,6 +468,56 @@ def test_plane_pieces_found_out_of_order_become_one_facade():
     assert sorted(len(g.members) for g in groups) == [1, 5]
     g = max(groups, key=lambda g: len(g.members))
     assert g.s_max - g.s_min == pytest.approx(14.3, abs=1e-6) and g.d_max == pytest.approx(1.2, abs=1e-6)
+
+
+def test_pieces_of_one_footprint_edge_across_a_gap_become_one_group():
+    from lidarmap.facade.planes import VerticalPlane, group_planes, join_edge_groups
+
+    fp = Polygon([(0, 0), (20, 0), (20, 12), (0, 12)])
+    street, side = np.array([0.0, -1.0]), np.array([1.0, 0.0])  # outward normals of the edges y = 0 and x = 20
+
+    def piece(s_lo, s_hi, c, support, normal=street):  # n . xy + c = 0; s runs along (-n_y, n_x)
+        return VerticalPlane(normal, c, s_lo, s_hi, support, np.zeros(0, int))
+
+    # on the street edge s = x and c = y: a tree hides x 9.4..15.5 (a gap of more than facade_max_gap), the glass
+    # of the right-hand piece is 0.15 m behind the wall; a wall 1.8 m in front of the edge is beyond merge_depth;
+    # the side wall x = 20 is another edge
+    planes = [piece(0.0, 9.4, 0.0, 5000), piece(15.5, 20.0, 0.15, 3000), piece(11.0, 12.0, -1.8, 300),
+              piece(0.0, 12.0, -20.0, 2000, normal=side)]
+    params = FacadeParams()
+    groups = group_planes(planes, params)
+    assert len(groups) == 4  # the gap keeps the two pieces of the street wall apart
+    joined = join_edge_groups(groups, fp, params)
+    assert sorted(len(g.members) for g in joined) == [1, 1, 2]
+    wall = max(joined, key=lambda g: len(g.members))
+    assert (wall.s_min, wall.s_max) == pytest.approx((0.0, 20.0))
+    assert (wall.d_min, wall.d_max) == pytest.approx((-0.15, 0.0), abs=1e-9)
+    assert join_edge_groups(groups[:1], fp, params) == groups[:1]
+    assert len(join_edge_groups(group_planes(planes, params), None, params)) == 4  # no footprint: no edge to join on
+
+
+def test_wall_split_by_a_tree_is_one_facade_and_a_later_campaign_adds_no_copies():
+    from lidarmap.map.model import BuildingMap
+    from lidarmap.map.refine import RefineParams
+    from lidarmap.map.update import refine_map
+
+    cloud, traj, fps, truth = make_scene(van=False, tree=True)
+    first = extract_buildings(cloud, traj, fps, FacadeParams(), campaign_id=1, seed=0)
+    street = [f for f in first[0].facades if f.footprint_edge == 0]
+    assert len(street) == 1  # not one façade on each side of the tree
+    f = street[0]
+    assert f.extent[1] - f.extent[0] == pytest.approx(20.0, abs=0.3)
+    m = BuildingMap(crs_wkt=CRS_UTM.to_wkt())
+    m = refine_map(m, cloud, traj, fps, FacadeParams(), RefineParams(), 1, seed=0)
+    cloud2, traj2, _, _ = make_scene(van=False, step=0.07, seed=5)
+    m = refine_map(m, cloud2, traj2, fps, FacadeParams(), RefineParams(), 2, seed=0)
+    street = [f for f in m.buildings["B1"].facades if f.footprint_edge == 0]
+    assert len(street) == 1
+    f = street[0]
+    wins = [e.polygon for e in f.elements if e.kind is ElementKind.WINDOW]
+    true = [_facade_rect(f.frame, w) for w in truth["windows"]]
+    matches = greedy_match(wins, true, 0.5)
+    assert len(matches) == len(true) == len(wins)  # every window once, the hidden column included
 
 
 def test_deterministic_for_a_seed(scene, extracted):

@@ -160,6 +160,32 @@ def test_a_new_shape_over_two_windows_with_wall_between_does_not_merge_them():
     assert [e.element_id for e in fused] == [3] and fused[0].polygon.bounds[0] < 0.6 < 3.0 < fused[0].polygon.bounds[2]
 
 
+def test_a_new_shape_over_a_stored_window_and_the_one_below_does_not_stretch_the_first_over_the_second():
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (60, 30))
+    lower, upper, new_shape = box(0.0, 0.8, 2.0, 2.3), box(0.5, 3.1, 1.5, 5.1), box(0.5, 0.8, 1.5, 5.1)
+    # campaigns 1 and 2 saw both windows and the 0.8 m of wall between them; campaign 3 saw the column badly: no
+    # votes on that wall, one shape from the lower window's sill to the upper window's head. It matches the upper
+    # window (IoU 0.47), not the lower one (IoU 0.26), which stays a window of its own
+    w12 = 2 * (grid.raster(lower) | grid.raster(upper)).astype(int)
+    o12 = 2 * (w12 == 0)
+    w3 = (grid.raster(new_shape) & ~grid.raster(box(0.5, 2.3, 1.5, 3.1))).astype(int)
+    votes = _Votes(grid, w12 + w3, o12, np.full(grid.shape, 3), np.ones(grid.shape, int), np.ones(grid.shape, bool),
+                   window_new=w3)
+    stored = [Element(3, ElementKind.WINDOW, lower, None, 0.0, campaigns=[1, 2]),
+              Element(5, ElementKind.WINDOW, upper, None, 0.0, campaigns=[1, 2])]
+    new = [Element(0, ElementKind.WINDOW, new_shape, None, 0.0, n_points=100, campaigns=[3])]
+    fused, changed = _fuse_openings(stored, new, votes, _Ids(stored), RefineParams(), (0.0, 3.0, 0.0, 6.0))
+    by_id = {e.element_id: e for e in fused}
+    assert sorted(by_id) == [3, 5] and by_id[5].campaigns == [1, 2, 3]
+    assert by_id[5].polygon.bounds == pytest.approx((0.5, 3.1, 1.5, 5.1))  # not stretched down to 0.8
+    assert by_id[3].polygon.bounds == pytest.approx((0.0, 0.8, 2.0, 2.3))
+    # without the lower window stored, the same votes are one opening's: the refit still takes them
+    alone, _ = _fuse_openings(stored[1:], new, votes, _Ids(stored[1:]), RefineParams(), (0.0, 3.0, 0.0, 6.0))
+    assert len(alone) == 1 and alone[0].polygon.bounds[1] == pytest.approx(0.8)
+
+
 def test_opening_type_and_existence_follow_evidence_weight_not_campaign_count():
     from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
 

@@ -90,6 +90,7 @@ from lidarmap.facade.planes import (
     fit_line_2d,
     footprint_edges,
     group_planes,
+    join_edge_groups,
     match_footprint_edge,
     ransac_vertical_planes,
     region_growing_vertical_planes,
@@ -175,7 +176,7 @@ def building_facades(camp: CampaignData, ids: np.ndarray, polygon, params: Facad
     xyz_b = camp.xyz[ids]
     near = boundary_distance(xyz_b[:, :2], polygon, params.join.join_quantum) <= params.join.max_footprint_distance
     ids, xyz_b = ids[near], xyz_b[near]
-    groups = detect_facade_groups(xyz_b, params, rng)
+    groups = join_edge_groups(detect_facade_groups(xyz_b, params, rng), polygon, params)
     tm["planes"] = tm.get("planes", 0.0) + time.perf_counter() - clock
     if not groups:
         return []

@@ -60,7 +60,8 @@ class PlaneParams:
     region_angle_deg (10.0): region growing: max normal angle between neighbours.
     min_facade_points (150): a façade plane needs this many voxel points (0.1 m voxels: ~1.5 m² of wall).
     min_facade_length (1.0): and this length along the wall.
-    facade_max_gap (2.0): collinear inliers further apart than this along the wall are separate planes.
+    facade_max_gap (2.0): collinear inliers further apart than this along the wall are separate planes (one
+        façade again when both lie on the same footprint edge: :func:`lidarmap.facade.planes.join_edge_groups`).
     merge_angle_deg (20.0): near-parallel planes (angle below this) ...
     merge_depth (1.5): ... whose ends both lie within this depth of a bigger plane, overlapping it along the
         wall, are one façade (its layers, or a short spurious fit through pilasters, reveals and door leaves;

@@ -361,16 +361,34 @@ class PlaneGroup:
         return sum(m.support for m in self.members)
 
 
-def _joinable(g: "PlaneGroup", plane: VerticalPlane, params: "FacadeParams") -> tuple[bool, np.ndarray, np.ndarray]:
-    """Whether ``plane`` belongs to group ``g`` (near-parallel, both ends within merge_depth, close along the wall);
-    also its ends' depths and along-wall positions in the group's reference plane."""
+def _joinable(g: "PlaneGroup", plane: VerticalPlane, params: "FacadeParams",
+              max_gap: float | None = None) -> tuple[bool, np.ndarray, np.ndarray]:
+    """Whether ``plane`` belongs to group ``g`` (near-parallel, both ends within merge_depth, close along the wall:
+    a gap of at most ``max_gap``, default ``facade_max_gap``); also its ends' depths and along-wall positions in the
+    group's reference plane."""
+    gap = params.planes.facade_max_gap if max_gap is None else max_gap
     ends = np.array([plane.s_min, plane.s_max])[:, None] * plane.direction - plane.c * plane.normal
     d = g.plane.distance(ends)
     s = g.plane.along(ends)
     ok = abs(float(plane.normal @ g.plane.normal)) >= np.cos(np.radians(params.planes.merge_angle_deg))
     ok = ok and np.max(np.abs(d)) <= params.planes.merge_depth
-    ok = ok and not (s.min() > g.s_max + params.planes.facade_max_gap or s.max() < g.s_min - params.planes.facade_max_gap)
+    ok = ok and not (s.min() > g.s_max + gap or s.max() < g.s_min - gap)
     return bool(ok), d, s
+
+
+def _span(g: "PlaneGroup") -> VerticalPlane:
+    """Group ``g`` as one plane: its reference plane over the group's whole range along the wall."""
+    return VerticalPlane(g.plane.normal, g.plane.c, g.s_min, g.s_max, g.support, g.plane.members)
+
+
+def _absorb(ga: "PlaneGroup", gb: "PlaneGroup", d: np.ndarray, s: np.ndarray) -> None:
+    """Group ``gb`` joins ``ga``; ``d``, ``s``: the ends of ``gb``'s span in ``ga``'s reference plane."""
+    ga.members += gb.members
+    ga.s_min, ga.s_max = min(ga.s_min, float(s.min())), max(ga.s_max, float(s.max()))
+    sign = 1.0 if float(ga.plane.normal @ gb.plane.normal) >= 0 else -1.0
+    lo_b, hi_b = sorted((sign * gb.d_min, sign * gb.d_max))
+    ga.d_min = min(ga.d_min, float(d.min()) + lo_b)
+    ga.d_max = max(ga.d_max, float(d.max()) + hi_b)
 
 
 def group_planes(planes: list[VerticalPlane], params: "FacadeParams") -> list[PlaneGroup]:
@@ -396,21 +414,43 @@ def group_planes(planes: list[VerticalPlane], params: "FacadeParams") -> list[Pl
                 if a == b:
                     continue
                 ga, gb = groups[a], groups[b]
-                span = VerticalPlane(gb.plane.normal, gb.plane.c, gb.s_min, gb.s_max, gb.support, gb.plane.members)
-                ok, d, s = _joinable(ga, span, params)
+                ok, d, s = _joinable(ga, _span(gb), params)
                 if ok and ga.support >= gb.support:
-                    ga.members += gb.members
-                    ga.s_min, ga.s_max = min(ga.s_min, float(s.min())), max(ga.s_max, float(s.max()))
-                    sign = 1.0 if float(ga.plane.normal @ gb.plane.normal) >= 0 else -1.0
-                    lo_b, hi_b = sorted((sign * gb.d_min, sign * gb.d_max))
-                    ga.d_min = min(ga.d_min, float(d.min()) + lo_b)
-                    ga.d_max = max(ga.d_max, float(d.max()) + hi_b)
+                    _absorb(ga, gb, d, s)
                     del groups[b]
                     merged = True
                     break
             if merged:
                 break
     return groups
+
+
+def group_edge(g: PlaneGroup, polygon, params: "FacadeParams") -> int | None:
+    """The footprint edge group ``g`` lies on (:func:`match_footprint_edge`), ``None`` for none."""
+    frame = FacadeFrame(origin=np.array([*(-g.plane.c * g.plane.normal), 0.0]), u=np.array([*g.plane.direction, 0.0]))
+    return match_footprint_edge(frame, (g.s_min, g.s_max), polygon, params)[0]
+
+
+def join_edge_groups(groups: list[PlaneGroup], polygon, params: "FacadeParams") -> list[PlaneGroup]:
+    """Groups on one footprint edge that :func:`group_planes` left apart only for a gap along the wall (more than
+    ``facade_max_gap``: a tree or a van hid the wall between them) are one façade. Kept apart, both would reach
+    over the whole edge in a later campaign (the map widens a façade to its edge) and split that wall's windows
+    between two planes, each proposing its own copy."""
+    if polygon is None or len(groups) < 2:
+        return groups
+    edges = [group_edge(g, polygon, params) for g in groups]
+    kept: list[int] = []  # indices into groups, the best supported first; a joining group takes its reference plane
+    for i in sorted(range(len(groups)), key=lambda k: -groups[k].support):
+        for a in kept:
+            if edges[i] is None or edges[i] != edges[a]:
+                continue
+            ok, d, s = _joinable(groups[a], _span(groups[i]), params, max_gap=np.inf)
+            if ok:
+                _absorb(groups[a], groups[i], d, s)
+                break
+        else:
+            kept.append(i)
+    return [groups[i] for i in sorted(kept)]  # the order they were found in
 
 
 # ----------------------------------------------------------------------------------------------------------------------

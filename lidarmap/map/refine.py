@@ -503,10 +503,11 @@ def weighted_window_uncertainty(window_votes: np.ndarray, object_votes: np.ndarr
 
 
 def refit_rectangle(window_votes: np.ndarray, object_votes: np.ndarray, col_lines, row_lines,
-                    prefer: np.ndarray | None = None) -> tuple[tuple[int, int, int, int] | None, float]:
+                    prefer: np.ndarray | None = None,
+                    forbidden: np.ndarray | None = None) -> tuple[tuple[int, int, int, int] | None, float]:
     """The rectangle (r0, r1, c0, c1) over candidate grid lines minimising :func:`weighted_window_uncertainty`,
     and its ε. Every pair of column lines and every pair of row lines is a candidate; all are scored at once with
-    integral images. ``(None, inf)`` without window weight.
+    integral images. ``(None, inf)`` without window weight, or when every candidate holds a ``forbidden`` cell.
 
     Ties -- cells whose window and wall votes cancel weigh nothing either way, so several rectangles can score the
     same -- go to the candidate holding most of ``prefer`` (a per-cell share in [0, 1] of the matched shapes'
@@ -529,6 +530,10 @@ def refit_rectangle(window_votes: np.ndarray, object_votes: np.ndarray, col_line
     R0, C0 = np.meshgrid(rl[ri], cl[ci], indexing="ij")
     R1, C1 = np.meshgrid(rl[rj], cl[cj], indexing="ij")
     err = n_hole - box_sums(iw, R0, R1, C0, C1) + 2 * box_sums(io, R0, R1, C0, C1)
+    if forbidden is not None and forbidden.any():
+        err = np.where(box_sums(integral_image(forbidden), R0, R1, C0, C1) > 0, np.inf, err)
+        if not np.isfinite(err).any():
+            return None, math.inf
     if prefer is None:
         best = np.unravel_index(int(np.argmin(err)), err.shape)
     else:  # among the tied minima, the candidate closest to the preferred extent, then the smallest
@@ -674,7 +679,7 @@ def _lines_near(g: _Grid, values, axis: int, lo: int, off: int) -> list[int]:
 def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: RefineParams,
                    extent: tuple[float, float, float, float], n_old: int = 0,
                    extra_bounds: np.ndarray | None = None, min_size: float = 0.0,
-                   doors: OpeningParams | None = None) -> Element | None:
+                   doors: OpeningParams | None = None, foreign: np.ndarray | None = None) -> Element | None:
     """One window/door from matched shapes: vote-map refit over their edge lines, sub-cell sides averaged over the
     shapes that proposed the chosen line (weighted by campaigns), kind by evidence-weighted vote
     (:func:`weighted_kind`; the first ``n_old`` members are stored shapes). ``None`` when the fused ε exceeds
@@ -682,7 +687,9 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     (:func:`outweighed_by_wall`). ``extra_bounds`` (rows of s_lo, t_lo, s_hi, t_hi): more candidate sides, from
     stored unknown regions the shapes lie in. ``None`` too when a side of the fused rectangle, cut to the extent,
     is shorter than ``min_size``. ``doors``: the detection's door sizes (see
-    :func:`_kind_voters`)."""
+    :func:`_kind_voters`). ``foreign``: the façade's cells inside stored openings that are not members; their
+    votes are not this opening's, and the fused rectangle may not reach into their interior (see
+    :func:`_foreign_cells`)."""
     g = votes.grid
     off = params.line_offsets
     bounds = np.array([[*m.polygon.bounds] for m in members])  # minx (s_lo), miny (t_lo), maxx (s_hi), maxy (t_hi)
@@ -706,7 +713,9 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
         if k < n_old:
             share_old += weight * cells
     total = max(sum(evidence), 1e-12)
-    w = _own_votes(votes.window[patch], votes.objects[patch], claimed, share_old / total > 0.5)
+    others = np.zeros(claimed.shape, dtype=bool) if foreign is None else foreign[patch]
+    w = np.where(others, 0, _own_votes(votes.window[patch], votes.objects[patch], claimed & ~others,
+                                        share_old / total > 0.5))
     cols = _lines_near(g, np.r_[lines[:, 0], lines[:, 2]], 0, c_lo, off)
     rows = _lines_near(g, np.r_[lines[:, 1], lines[:, 3]], 1, r_lo, off)
     # ties go to the extent the stored shapes' evidence claims; a new shape alone keeps the plain line order, except
@@ -715,7 +724,8 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     # 2.25 m to the left side of the region campaign 1 could not see -- a tree and a van stood in front -- across a
     # pier and the next window)
     tie_to_shapes = n_old > 0 or (extra_bounds is not None and len(extra_bounds) > 0)
-    rect, eps = refit_rectangle(w, votes.objects[patch], cols, rows, share / total if tie_to_shapes else None)
+    rect, eps = refit_rectangle(w, votes.objects[patch], cols, rows, share / total if tie_to_shapes else None,
+                                ndimage.binary_erosion(others) if others.any() else None)
     if rect is None or eps > params.max_window_uncertainty:
         return None
     weights = np.array([_weight(m) for m in members], dtype=np.float64)
@@ -975,6 +985,28 @@ def _split_bridged(olds: list[Element], news: list[Element], votes: _Votes) -> l
     return out
 
 
+def _stored_index(old: list[Element], g: _Grid) -> np.ndarray:
+    """Per cell of the façade's grid, 1 + the index (in ``old``) of the stored opening over it, 0 for none."""
+    at = np.zeros(g.shape, dtype=np.int32)
+    for k, e in enumerate(old):
+        at[g.raster(e.polygon)] = k + 1
+    return at
+
+
+def _foreign_cells(stored_at: np.ndarray, old: list[Element], olds: list[Element]) -> np.ndarray | None:
+    """The cells of the stored openings other than ``olds`` (:func:`_stored_index`), ``None`` for none. A new
+    shape that spans one stored opening and its neighbour across the wall between them (a campaign that saw
+    neither well) must not stretch the first over the second: the neighbour stays a separate opening, so its votes
+    are not the first's, and two stored openings would overlap (issue 18 round 12, dev seed 162: a window
+    stretched 2.3 m down over the window below it, 0.8 m of wall between them). Only for groups with a stored
+    member: a new shape alone over a stored sliver it was not matched with is a new, fuller view (dev seed 152: a
+    campaign saw whole windows whose top 0.45 m campaign 1 had stored as slivers; barring the slivers' cells
+    dropped the windows)."""
+    mine = [k + 1 for k, e in enumerate(old) if any(e is o for o in olds)]
+    cells = (stored_at > 0) & ~np.isin(stored_at, mine)
+    return cells if cells.any() else None
+
+
 def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _Ids, params: RefineParams,
                    extent: tuple[float, float, float, float],
                    unknown: list[Element] | None = None, min_size: float = 0.0,
@@ -994,6 +1026,7 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
     changed: set[int] = set()
     groups = [part for oi, ni in _clusters(old, new, lambda e: "opening", params)
               for part in _split_bridged([old[i] for i in oi], [new[j] for j in ni], votes)]
+    stored_at = _stored_index(old, votes.grid)
     for olds, news in groups:
         if not news:
             for e in olds:
@@ -1007,7 +1040,8 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
         keep_id = _keeper(olds).element_id if olds else ids()
         extra = None if olds or not unknown else _unknown_bounds(news, unknown)
         merged = _merge_opening(olds + news, keep_id, votes, params, extent, n_old=len(olds), extra_bounds=extra,
-                                min_size=min_size, doors=doors)
+                                min_size=min_size, doors=doors,
+                                foreign=_foreign_cells(stored_at, old, olds) if olds else None)
         if merged is not None:
             out.append(merged)
             changed.add(keep_id)
