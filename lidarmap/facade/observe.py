@@ -92,6 +92,7 @@ from lidarmap.facade.planes import (
     group_planes,
     join_edge_groups,
     match_footprint_edge,
+    plane_frame,
     ransac_vertical_planes,
     region_growing_vertical_planes,
     voxel_subsample,
@@ -230,8 +231,7 @@ def extract_facade(camp: CampaignData, member_ids: np.ndarray, group: PlaneGroup
     sensors = camp.sensors[member_ids]
     cell = params.layers.cell
     n2 = group.plane.normal
-    frame = FacadeFrame(origin=np.array([*(-group.plane.c * n2), 0.0]), u=np.array([-n2[1], n2[0], 0.0]))
-    frame = _orient(frame, polygon, xyz, sensors, params)
+    frame = _orient(plane_frame(group.plane), polygon, xyz, sensors, params)
     sdt = frame.to_facade(xyz)
     lo, hi = group.d_min - params.layers.layer_back, group.d_max + params.layers.layer_front
     if frame.normal[:2] @ n2 < 0:  # flipped: depths of the members flip too

@@ -425,10 +425,15 @@ def group_planes(planes: list[VerticalPlane], params: "FacadeParams") -> list[Pl
     return groups
 
 
+def plane_frame(plane: VerticalPlane) -> FacadeFrame:
+    """The façade frame of a vertical plane: origin on it at s = 0, z = 0, s along :attr:`VerticalPlane.direction`
+    (so s is :meth:`VerticalPlane.along`), d along its normal."""
+    return FacadeFrame(origin=np.array([*(-plane.c * plane.normal), 0.0]), u=np.array([*plane.direction, 0.0]))
+
+
 def group_edge(g: PlaneGroup, polygon, params: "FacadeParams") -> int | None:
     """The footprint edge group ``g`` lies on (:func:`match_footprint_edge`), ``None`` for none."""
-    frame = FacadeFrame(origin=np.array([*(-g.plane.c * g.plane.normal), 0.0]), u=np.array([*g.plane.direction, 0.0]))
-    return match_footprint_edge(frame, (g.s_min, g.s_max), polygon, params)[0]
+    return match_footprint_edge(plane_frame(g.plane), (g.s_min, g.s_max), polygon, params)[0]
 
 
 def join_edge_groups(groups: list[PlaneGroup], polygon, params: "FacadeParams") -> list[PlaneGroup]:

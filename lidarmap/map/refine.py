@@ -993,7 +993,7 @@ def _stored_index(old: list[Element], g: _Grid) -> np.ndarray:
     return at
 
 
-def _foreign_cells(stored_at: np.ndarray, old: list[Element], olds: list[Element]) -> np.ndarray | None:
+def _foreign_cells(stored_at: np.ndarray, old: list[Element], olds: list[Element], g: _Grid) -> np.ndarray | None:
     """The cells of the stored openings other than ``olds`` (:func:`_stored_index`), ``None`` for none. A new
     shape that spans one stored opening and its neighbour across the wall between them (a campaign that saw
     neither well) must not stretch the first over the second: the neighbour stays a separate opening, so its votes
@@ -1002,8 +1002,11 @@ def _foreign_cells(stored_at: np.ndarray, old: list[Element], olds: list[Element
     member: a new shape alone over a stored sliver it was not matched with is a new, fuller view (dev seed 152: a
     campaign saw whole windows whose top 0.45 m campaign 1 had stored as slivers; barring the slivers' cells
     dropped the windows)."""
-    mine = [k + 1 for k, e in enumerate(old) if any(e is o for o in olds)]
+    members = {id(o) for o in olds}
+    mine = [k + 1 for k, e in enumerate(old) if id(e) in members]
     cells = (stored_at > 0) & ~np.isin(stored_at, mine)
+    for e in olds:  # where stored openings overlap, a member's own cells are never another's
+        cells &= ~g.raster(e.polygon)
     return cells if cells.any() else None
 
 
@@ -1026,7 +1029,7 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
     changed: set[int] = set()
     groups = [part for oi, ni in _clusters(old, new, lambda e: "opening", params)
               for part in _split_bridged([old[i] for i in oi], [new[j] for j in ni], votes)]
-    stored_at = _stored_index(old, votes.grid)
+    stored_at = _stored_index(old, votes.grid) if any(o and n for o, n in groups) else None
     for olds, news in groups:
         if not news:
             for e in olds:
@@ -1041,7 +1044,7 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
         extra = None if olds or not unknown else _unknown_bounds(news, unknown)
         merged = _merge_opening(olds + news, keep_id, votes, params, extent, n_old=len(olds), extra_bounds=extra,
                                 min_size=min_size, doors=doors,
-                                foreign=_foreign_cells(stored_at, old, olds) if olds else None)
+                                foreign=_foreign_cells(stored_at, old, olds, votes.grid) if olds else None)
         if merged is not None:
             out.append(merged)
             changed.add(keep_id)
