@@ -49,6 +49,8 @@ BALCONY_SLAB = (9.5, 13.2, -1.0, 0.0, 5.6, 5.75)
 BALCONY_RAIL = (9.5, 13.2, -1.0, -0.95, 5.75, 6.3)
 INTERIOR_Y = 6.0
 TREE = (5.9, 9.3, -3.2, -2.8, 0.0, 14.0)  # a crown as tall as the wall: hides a 3.4 m strip of it from the street
+SHUTTERED = (7.5, 8.7, 7.0, 8.4)  # the upper window in the middle column ...
+SHUTTERS = [(7.2, 7.5, -0.05, 0.0, 7.0, 8.4), (8.7, 9.0, -0.05, 0.0, 7.0, 8.4)]  # ... its open shutters, 5 cm proud
 SENSOR_Y, SENSOR_Z = -8.0, 2.5
 
 
@@ -86,7 +88,7 @@ def _plane_hits(o, v, axis, value, bounds_a, bounds_b, holes=()):
 
 def make_scene(rotation_deg: float = 30.0, offset=(412000.0, 5651000.0, 55.0), van: bool = True,
                interior: bool = True, step: float = 0.05, angle_step_deg: float = 0.2, noise: float = 0.005,
-               seed: int = 0, tree: bool = False):
+               seed: int = 0, tree: bool = False, shutters: bool = False):
     """Ray-cast the scene; returns (PointCloud, Trajectory, Footprints, truth dict in CRS coordinates)."""
     rng = np.random.default_rng(seed)
     speed = 10.0
@@ -111,6 +113,8 @@ def make_scene(rotation_deg: float = 30.0, offset=(412000.0, 5651000.0, 55.0), v
         cand["van"] = _box_hits(o, v, VAN)
     if tree:
         cand["tree"] = _box_hits(o, v, TREE)
+    if shutters:
+        cand["shutters"] = np.minimum(*(_box_hits(o, v, b) for b in SHUTTERS))
     if interior:
         cand["interior"] = _plane_hits(o, v, 1, INTERIOR_Y, WALL[:2], WALL[2:])
     names = list(cand)
@@ -122,7 +126,7 @@ def make_scene(rotation_deg: float = 30.0, offset=(412000.0, 5651000.0, 55.0), v
     best = best + rng.normal(0.0, noise, len(best))
     local = o + best[:, None] * v
     cls_of = {"wall": 6, "door": 6, "slab": 6, "rail": 6, "ground": 2, "floor": 1, "van": 1, "interior": 6,
-              "tree": 1}
+              "tree": 1, "shutters": 6}
     classification = np.array([cls_of[k] for k in names], dtype=np.uint8)[which]
 
     a = math.radians(rotation_deg)
@@ -518,6 +522,20 @@ def test_wall_split_by_a_tree_is_one_facade_and_a_later_campaign_adds_no_copies(
     true = [_facade_rect(f.frame, w) for w in truth["windows"]]
     matches = greedy_match(wins, true, 0.5)
     assert len(matches) == len(true) == len(wins)  # every window once, the hidden column included
+
+
+def test_open_shutters_beside_a_window_do_not_widen_it():
+    """Issue 18 round 13 (dev seed 176): open shutters stand 3-6 cm proud of the wall right beside a window. They
+    hide the wall there, so the wall sample nearest the window lay beyond the shutter and its side moved out over
+    it by the most it may (0.25 m). Here they stand right at its sides, seen square on: the same shadow. A return
+    standing that little proud ends an opening like the wall."""
+    cloud, traj, fps, truth = make_scene(van=False, shutters=True)
+    f = next(f for f in extract_buildings(cloud, traj, fps, FacadeParams(), campaign_id=1, seed=0)[0].facades
+             if f.footprint_edge == 0)
+    true = _facade_rect(f.frame, truth["windows"][_windows().index(SHUTTERED)])
+    wins = [e.polygon for e in f.elements if e.kind is ElementKind.WINDOW and e.polygon.intersects(true)]
+    assert len(wins) == 1
+    assert np.allclose(wins[0].bounds, true.bounds, atol=0.08), (wins[0].bounds, true.bounds)
 
 
 def test_deterministic_for_a_seed(scene, extracted):

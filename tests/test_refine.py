@@ -873,6 +873,30 @@ def test_a_window_verdict_from_a_shape_too_short_for_a_door_does_not_retype_a_do
         assert fused[0].polygon.bounds[3] - fused[0].polygon.bounds[1] >= 1.95
 
 
+def test_a_fused_opening_without_a_door_size_is_a_window_whoever_voted_door():
+    """Issue 18 round 13 (dev seed 178): campaign 1 found a glazed window 1.8 m tall; campaign 2 saw it 2.2 m tall
+    and, its panes returning like a leaf, typed it a door. The refit cut the fused rectangle back to the window
+    (wall above and below it), but the door shape held more evidence over it and the opening stayed a door, 1.8 m
+    tall: the detection would never type such a rectangle a door. A rectangle the refit leaves door-sized keeps the
+    door's verdict."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    sizes = OpeningParams()  # door_min_height 1.95
+    for window, kind in ((box(1.0, 0.7, 2.0, 2.5), ElementKind.WINDOW), (box(1.0, 0.5, 2.0, 2.6), ElementKind.DOOR)):
+        stored = [Element(3, ElementKind.WINDOW, window, None, 0.05, campaigns=[1])]
+        new = [Element(0, ElementKind.DOOR, box(1.0, 0.5, 2.0, 2.7), None, 0.2, campaigns=[2])]
+        w_cells = grid.raster(window)
+        old_w, new_w = w_cells.astype(int), 2 * w_cells.astype(int)
+        objects = 3 * (~w_cells).astype(int)  # campaign 1: wall all around the window
+        votes = _Votes(grid, old_w + new_w, objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
+                       np.ones(grid.shape, bool), window_new=new_w)
+        fused, _ = _fuse_openings(stored, new, votes, _Ids(stored + new), RefineParams(), (0.0, 4.0, 0.0, 4.0), [],
+                                  0.45, sizes)
+        assert [(e.element_id, e.kind) for e in fused] == [(3, kind)], window.bounds
+        assert np.allclose(fused[0].polygon.bounds, window.bounds, atol=0.06), fused[0].polygon.bounds  # sides averaged
+
+
 def test_an_enclosed_opening_of_a_door_size_at_the_facade_bottom_is_promoted_a_door():
     """Issue 18 round 7 (dev seed 108 b6 f2, a door 2.4 m tall starting 0.17 m above the façade's bottom): the
     campaigns saw wall below it (a threshold, the pavement's edge), so the fused votes enclose it and the unknown

@@ -582,8 +582,12 @@ def _hole_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: F
     regions as unknown regions."""
     cell = surf.cell
     s0, s1, t0, t1 = surf.extent
-    on_main = surf.labels == surf.main_idx
-    wall_st = surf.sdt[on_main, :2]
+    # the samples that end an opening's side: the wall, and returns standing proud of it by less than an occluder
+    # (open shutters 3 cm beside a window, frames): a pulse stopped there did not cross the plane, and without them
+    # the side moved 0.25 m over a shutter that hid the wall behind it (issue 18 round 13, dev seed 176)
+    proud = surf.sdt[:, 2] - surf.main.mu
+    stops = (surf.labels == surf.main_idx) | ((proud > 0) & (proud < params.occlusion.occluder_min_depth))
+    wall_st = surf.sdt[stops, :2]
     if vis.leaves is not None and vis.leaves.any() or vis.behind is not None:
         # a flush leaf's returns, and those of a leaf or pane a few cm back inside an opening, fall on the main
         # layer but are no wall: taken as the last wall sample they pulled the sides 0.2-0.3 m into the opening
@@ -593,7 +597,7 @@ def _hole_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: F
         if vis.leaves is not None:
             not_wall[inside] = vis.leaves[row[inside], col[inside]]
         if vis.behind is not None:
-            not_wall[inside] |= vis.behind[on_main][inside] & (vis.values[row[inside], col[inside]] == HOLE)
+            not_wall[inside] |= vis.behind[stops][inside] & (vis.values[row[inside], col[inside]] == HOLE)
         wall_st = wall_st[~not_wall]
     front = None  # cells of layers in front of the wall (balconies, their parapets): only the parapet rule reads them
     if params.openings.complete_behind_structures:

@@ -294,7 +294,8 @@ class OpeningParams:
         on each side: a cell straddling a window edge usually holds wall points, so the hole is on average half
         a cell short on each side.
     refine_max_cells (2.5): with wall points, each side is placed half a sampling spacing beyond the last wall
-        sample (sub-cell, and right for sparse far façades whose scan lines are further apart than a cell);
+        sample (sub-cell, and right for sparse far façades whose scan lines are further apart than a cell;
+        returns less than occlusion.occluder_min_depth proud of the wall, e.g. open shutters, count as wall);
         it moves at most this many cells from its cell edge ...
     refine_min_points (8): ... and needs this many wall points along it.
     refine_inward_cells (1.0): ... and moves at most this many cells into the opening: the opening's cells hold

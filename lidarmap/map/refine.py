@@ -682,7 +682,8 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
                    doors: OpeningParams | None = None, foreign: np.ndarray | None = None) -> Element | None:
     """One window/door from matched shapes: vote-map refit over their edge lines, sub-cell sides averaged over the
     shapes that proposed the chosen line (weighted by campaigns), kind by evidence-weighted vote
-    (:func:`weighted_kind`; the first ``n_old`` members are stored shapes). ``None`` when the fused ε exceeds
+    (:func:`weighted_kind`; the first ``n_old`` members are stored shapes), a window when the fused rectangle has
+    no door's size by ``doors``. ``None`` when the fused ε exceeds
     ``max_window_uncertainty`` or the wall evidence over it outweighs its opening evidence
     (:func:`outweighed_by_wall`). ``extra_bounds`` (rows of s_lo, t_lo, s_hi, t_hi): more candidate sides, from
     stored unknown regions the shapes lie in. ``None`` too when a side of the fused rectangle, cut to the extent,
@@ -755,6 +756,11 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     votes_on_kind = [(m.kind, w) for m, w, v in zip(members, evidence_over, _kind_voters(members, poly, doors))
                      if v]
     kind = weighted_kind([k for k, _ in votes_on_kind], [w for _, w in votes_on_kind], keeper.kind)
+    if kind is ElementKind.DOOR and doors is not None and not _door_sized(poly, doors):
+        # the detection types an opening without a door's size a window whatever else it sees, and so does the
+        # fusion (issue 18 round 13, dev seed 178: a glazed window 1.82 m tall that one campaign saw 2.2 m tall,
+        # a door by its leaf, stayed a door after the refit cut it to 1.69 m)
+        kind = ElementKind.WINDOW
     layered = [m for m in members if m.layer_id is not None]
     layer_id = max(layered, key=_weight).layer_id if layered else None
     campaigns = sorted({c for m in members for c in m.campaigns})
