@@ -875,7 +875,7 @@ def test_a_window_verdict_from_a_shape_too_short_for_a_door_does_not_retype_a_do
 
 def test_a_fused_opening_without_a_door_size_is_a_window_whoever_voted_door():
     """Issue 18 round 13 (dev seed 178): campaign 1 found a glazed window 1.8 m tall; campaign 2 saw it 2.2 m tall
-    and, its panes returning like a leaf, typed it a door. The refit cut the fused rectangle back to the window
+    and typed it a door. The refit cut the fused rectangle back to the window
     (wall above and below it), but the door shape held more evidence over it and the opening stayed a door, 1.8 m
     tall: the detection would never type such a rectangle a door. A rectangle the refit leaves door-sized keeps the
     door's verdict."""

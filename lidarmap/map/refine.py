@@ -758,8 +758,8 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     kind = weighted_kind([k for k, _ in votes_on_kind], [w for _, w in votes_on_kind], keeper.kind)
     if kind is ElementKind.DOOR and doors is not None and not _door_sized(poly, doors):
         # the detection types an opening without a door's size a window whatever else it sees, and so does the
-        # fusion (issue 18 round 13, dev seed 178: a glazed window 1.82 m tall that one campaign saw 2.2 m tall,
-        # a door by its leaf, stayed a door after the refit cut it to 1.69 m)
+        # fusion (issue 18 round 13, dev seed 178: a glazed window 1.82 m tall that one campaign saw 2.2 m tall
+        # and typed a door stayed a door after the refit cut it to 1.69 m)
         kind = ElementKind.WINDOW
     layered = [m for m in members if m.layer_id is not None]
     layer_id = max(layered, key=_weight).layer_id if layered else None
