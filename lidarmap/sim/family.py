@@ -25,7 +25,7 @@ EVAL_SEEDS = tuple(range(7001, 7111))  # 7011-7020 added 2026-11-26 after 7001-7
 #                                       7071-7080 added 2026-11-29 03:08 UTC, before any run, for round 11;
 #                                       7081-7090 added 2026-11-29 07:35 UTC, before any run, for round 12;
 #                                       7091-7100 added 2026-11-29 10:03 UTC, before any run, for round 13;
-#                                       7101-7110 added 2026-11-29 12:43 UTC, before any run, for round 14
+#                                       7101-7110 added 2026-11-29 12:29 UTC, before any run, for round 14
 DEV_SEEDS = (11, 12, 13)
 
 
