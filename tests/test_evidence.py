@@ -294,6 +294,34 @@ def test_window_in_a_fringe_of_shadow_but_enclosed_by_wall_is_a_window():
     assert [op.kind for op in detect_openings(values, 0.1, no_rule) if op.n_cells > 20] == [ElementKind.UNKNOWN]
 
 
+def test_a_window_the_facade_extent_cuts_at_its_jamb_is_a_window_when_wall_closes_its_other_sides():
+    """Dev seed 183 (issue 18): a side wall seen from a street beyond its end at a grazing angle; the scanner's
+    reach ends a few cm past the first column of windows, so the façade's extent (its wall samples) starts at their
+    jambs and each hole touches the grid's border. Wall below, above and on the far side makes each a window whose
+    side is the border; a hole along the border with no wall above or below it (the gap past a building's corner,
+    a strip the scanner did not reach) stays UNKNOWN, as does one with shadow beyond its far side."""
+    from lidarmap.facade.openings import HOLE, OBJECT, OCCLUDED, detect_openings
+
+    values = np.full((60, 50), OBJECT, dtype=np.int8)
+    values[:, 0] = OCCLUDED  # the border column: the last wall samples, too sparse for every cell
+    values[20:36, 0:12] = HOLE  # a 1.2 m x 1.6 m window whose left jamb is the extent's edge
+    ops = [op for op in detect_openings(values, 0.1, FacadeParams()) if op.n_cells > 20]
+    assert [op.kind for op in ops] == [ElementKind.WINDOW]
+    assert np.allclose(ops[0].bounds, (0.0, 1.2, 2.0, 3.6), atol=0.06), ops[0].bounds
+    values[10:50, 12:16] = OCCLUDED  # a shadow beyond its right side: it may go on behind it
+    assert [op.kind for op in detect_openings(values, 0.1, FacadeParams()) if op.n_cells > 20] == [ElementKind.UNKNOWN]
+    values[10:50, 12:16] = OBJECT
+    # door-tall, its bottom on the ground line of a wall seen this little: wall below it still makes it a window
+    values[15:20, 0:12] = HOLE
+    ground = np.full(50, 1.45)
+    ops = [op for op in detect_openings(values, 0.1, FacadeParams(), ground_t=ground) if op.n_cells > 20]
+    assert [op.kind for op in ops] == [ElementKind.WINDOW] and ops[0].bounds[3] - ops[0].bounds[2] > 2.0
+    values[15:20, 0:12] = OBJECT
+    values[0:60, 0:3] = HOLE  # a strip along the border over the whole height: no rectangle of its own
+    values[20:36, 3:12] = OBJECT
+    assert [op.kind for op in detect_openings(values, 0.1, FacadeParams()) if op.n_cells > 20] == [ElementKind.UNKNOWN]
+
+
 def test_french_window_behind_a_balcony_parapet_reaches_down_to_it():
     """The parapet of a balcony (a layer in front of the wall) hides the lower part of the window above it from a
     scanner below: the window reaches down, across the occluded rows, to the parapet's top. A window whose lower

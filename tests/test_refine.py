@@ -295,6 +295,37 @@ def test_refinement_is_deterministic(synthetic_maps):
         assert np.array_equal(getattr(a.evidence, name), getattr(b.evidence, name))
 
 
+def _hidden_window_found(stored_step: float, stored_angle: float) -> tuple[float, float, bool, bool]:
+    """Campaign 1 (van in front) sampled at (``stored_step`` m, ``stored_angle``°), then campaign 2 without the van at
+    0.25 m / 1.2° (~19 points/m², under the default ``min_element_density`` of 20): the two densities and whether
+    the window the van hid is in the map after campaign 1 and after campaign 2."""
+    from lidarmap.map.refine import stored_density
+
+    first = make_scene(step=stored_step, angle_step_deg=stored_angle)
+    second = make_scene(van=False, step=0.25, angle_step_deg=1.2, seed=5)
+    m1 = refine_map(BuildingMap(crs_wkt=CRS_UTM.to_wkt()), *first[:3], FacadeParams(), RefineParams(), campaign_id=1)
+    alone = refine_map(BuildingMap(crs_wkt=CRS_UTM.to_wkt()), *second[:3], FacadeParams(), RefineParams(),
+                       campaign_id=2)
+    m2 = refine_map(m1, *second[:3], FacadeParams(), RefineParams(), campaign_id=2)
+    f1, f2 = m1.buildings["B1"].facades[0], m2.buildings["B1"].facades[0]
+    hidden = _facade_rect(f2.frame, first[3]["hidden_windows"][0])
+    found = [any(polygon_iou(e.polygon, hidden) > 0.8 for e in _openings(f).values()) for f in (f1, f2)]
+    return stored_density(f1), stored_density(alone.buildings["B1"].facades[0]), found[0], found[1]
+
+
+def test_a_campaign_sparser_than_the_gate_but_denser_than_the_stored_facade_adds_its_openings():
+    """Dev seed 122 (issue 18): campaign 1 sampled side walls at 10-15 points/m² and built their openings from
+    that; campaign 2 sampled them at 16-20 /m², under ``min_element_density``, and was left out, so the windows
+    only it saw stayed missing. A campaign at least as dense as the façade's own campaigns adds its
+    elements; over a densely sampled façade the gate still keeps a sparse campaign's elements out."""
+    sparse, second, before, after = _hidden_window_found(0.3, 1.5)
+    assert sparse < second < RefineParams().min_element_density, (sparse, second)
+    assert not before and after
+    dense, second, before, after = _hidden_window_found(0.05, 0.2)
+    assert second < RefineParams().min_element_density < dense, (dense, second)
+    assert not before and not after
+
+
 def test_as_of_reproduces_the_earlier_export_exactly(synthetic_maps, tmp_path):
     from lidarmap.export.cityjson import map_to_cityjson
     from lidarmap.map.store import MapStore

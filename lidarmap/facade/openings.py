@@ -237,7 +237,8 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
     """Classify every hole region of a value grid (see :func:`hole_regions` and the module doc).
 
     * fewer hole cells than ``min_hole_area``: ignored (sampling gaps);
-    * touching the left, right or top border of the grid, larger than ``max_opening_area``, more than
+    * touching the left, right or top border of the grid (unless wall closes the three other sides of a hole the
+      left or right border cuts: :func:`_cut_side`), larger than ``max_opening_area``, more than
       ``occlusion_touch_max`` of its border occluded (unless wall encloses it: :func:`enclosed_by_wall`), fill
       ratio below ``Ta``, rectangle ε_w above
       ``max_window_uncertainty`` or a side below ``min_opening_size``: UNKNOWN (uncertainty inf);
@@ -282,7 +283,8 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         ring = ndimage.binary_dilation(local) & ~local
         ring_vals = work[win][ring]
         occ_border = float(np.count_nonzero(ring_vals == OCCLUDED)) / max(1, ring_vals.size)
-        touches_edge = c0 == 0 or c1 == cols or r1 == rows
+        cut = _cut_side(work, (r0, r1, c0, c1), params)
+        touches_edge = (c0 == 0 or c1 == cols or r1 == rows) and cut is None
         area = int(region_sizes[lab]) * cell * cell
         unknown = Opening(ElementKind.UNKNOWN, mask, None, math.inf, fill, occ_border, n_cells, region)
         if touches_edge or area > params.openings.max_opening_area or not (
@@ -307,14 +309,19 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         if low is not None:  # the shadow explains the occluded side; wall must close the seen part's others
             hidden = not enclosed_by_wall(work, seen_rect, params, sides=(True, True, False, True))
         else:
+            sides = _sides(rect, ground, t0, cell, params)
+            if cut is not None:  # no wall was seen beyond the façade's extent: that side needs none
+                sides = tuple(named and k != cut for k, named in enumerate(sides))
             hidden = occ_border > params.openings.occlusion_touch_max and not enclosed_by_wall(
-                work, rect, params, sides=_sides(rect, ground, t0, cell, params))
+                work, rect, params, sides=sides)
         if hidden or eps > params.openings.max_window_uncertainty \
                 or min(width, height) < params.openings.min_opening_size:
             unknown.rect = seen_rect if hidden else None
             out.append(unknown)
             continue
         kind = door_or_window(bounds, float(np.mean(ground[rect[2]:rect[3]])), mask, opaque, params)
+        if cut is not None:  # wall closes it below: no door, whatever the ground line of a wall seen this little
+            kind = ElementKind.WINDOW
         if low is not None:
             eps = window_uncertainty_eq3(local, rect)  # the occluded rows it now covers count
         out.append(Opening(kind, mask, rect, eps, fill, occ_border, n_cells, region, bounds))
@@ -372,6 +379,23 @@ def below_floor_level(openings: list[Opening], ground: np.ndarray, params: Facad
             o.kind = ElementKind.WINDOW
             done += 1
     return done
+
+
+def _cut_side(values: np.ndarray, box: tuple[int, int, int, int], params: FacadeParams) -> int | None:
+    """The side (0 left, 1 right, as ``enclosed_by_wall`` names them) of a hole's bounding box (r0, r1, c0, c1)
+    that the façade's extent cuts, when the hole is a whole opening there all the same, else ``None``.
+
+    The extent ends where the campaigns' wall samples end (the scanner's reach along a wall seen at a grazing
+    angle), and it can end at a window's jamb: the hole then touches the grid's left or right border. It is taken
+    as whole when wall closes its three other sides (:func:`enclosed_by_wall`): a rectangle of its own, not the
+    gap past a building's corner nor a strip of unobserved wall along the border (those have no wall above and
+    below). With wall below it such a hole is a window. Without such a side it stays an unknown region."""
+    r0, r1, c0, c1 = box
+    rows, cols = values.shape
+    if r0 == 0 or r1 >= rows or (c0 == 0) == (c1 >= cols):
+        return None
+    side = 0 if c0 == 0 else 1
+    return side if enclosed_by_wall(values, box, params, sides=(side == 1, side == 0, True, True)) else None
 
 
 def enclosed_by_wall(values: np.ndarray, rect: tuple[int, int, int, int], params: FacadeParams,

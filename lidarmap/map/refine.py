@@ -23,7 +23,8 @@ Refinement of one stored façade by one campaign (:func:`refine_facade`), in the
    extent grows (whole cells, so the evidence grids stay aligned) where the new wall reaches beyond it.
 4. :func:`lidarmap.facade.observe.observe.observe_facade` gives what the campaign saw on the (grown) grid; the evidence grids add up:
    ``window_votes`` / ``object_votes`` / ``seen`` count campaigns per pixel. A campaign sampling the façade more
-   sparsely than ``min_element_density`` (side walls at grazing angles) refines the plane and layers only.
+   sparsely than ``min_element_density`` (side walls at grazing angles) and more sparsely than the stored façade
+   (:func:`stored_density`) refines the plane and layers only.
 5. **Elements** of the same layer class are matched by polygon IoU (or a piece mostly inside another, so objects an
    old occlusion split merge). Windows/doors: the best rectangle over candidate lines from the edges of all matched
    shapes minimises the weighted eq. (3) on the vote map (:func:`refit_rectangle`, :func:`weighted_window_uncertainty`:
@@ -120,7 +121,8 @@ class RefineParams:
         min_element_density (20.0): a campaign that samples a façade with fewer points per m² of the cells it saw
             (a side wall at a grazing angle: 1-2 /m², against 100-200 /m² on street façades) refines its plane and
             layers only: at that spacing a 1 m gap is sampling, not an opening, so its elements and evidence are
-            left out.
+            left out. Unless it samples the façade at least as densely as the stored façade's campaigns did
+            (:func:`stored_density`): then the stored elements came from no better sampling.
 
     Layers (eq. 4-7)
         main_layer_gate (0.3): the new component nearest the stored main layer (d = 0) within this distance is
@@ -1433,7 +1435,7 @@ def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, po
     old_ev = pad_evidence(stored.evidence, obs.extent, cell)
     old_area = _old_area(stored.evidence, obs.extent, cell)
     seen_area = float(obs.evidence.seen.sum()) * cell * cell
-    if obs.n_points >= params.min_element_density * seen_area:
+    if obs.n_points >= min(params.min_element_density, stored_density(stored)) * seen_area:
         fused_ev = _add_evidence(old_ev, obs.evidence)
         votes = _Votes(_Grid(fused_ev.s0, fused_ev.t0, cell, fused_ev.shape), fused_ev.window_votes,
                        fused_ev.object_votes, fused_ev.seen, obs.evidence.seen, old_area,
@@ -1451,6 +1453,16 @@ def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, po
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Buildings and the map
+
+
+def stored_density(f: Facade) -> float:
+    """Points per m² the stored façade holds over the cells its campaigns saw (inf without evidence): a campaign
+    sampling it at least that densely knows it no worse than the campaigns it was built from."""
+    ev = f.evidence
+    if ev is None:
+        return math.inf
+    area = float(np.count_nonzero(ev.seen)) * ev.cell * ev.cell
+    return f.n_points / area if area > 0 else math.inf
 
 
 def _s_range(f: Facade, polygon, params: RefineParams) -> tuple[float, float]:
