@@ -244,7 +244,7 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
       ``max_window_uncertainty`` or a side below ``min_opening_size``: UNKNOWN (uncertainty inf);
     * door-sized and reaching the ground (:func:`door_or_window`; ``ground_t``: ground height per grid column in
       façade t, default: the grid's bottom edge ``t0``; ``opaque``: share of passing pulses back from just behind):
-      DOOR;
+      DOOR, unless the border cuts it (wall was required below it);
     * otherwise WINDOW with the fitted rectangle and its eq. (3) ε_w (bridged occluded cells count as 0).
 
     With ``front`` (cells of a layer in front of the wall: balconies) a hole whose rows below are occluded down to
