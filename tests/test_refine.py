@@ -326,6 +326,31 @@ def test_a_campaign_sparser_than_the_gate_but_denser_than_the_stored_facade_adds
     assert not before and not after
 
 
+def test_a_later_campaign_off_the_stored_plane_by_gps_drift_still_adds_the_window_only_it_saw():
+    """Hard dev seed 147: a later campaign's wall lay 8-10 cm behind the fused plane (GPS drift between campaigns),
+    at the edge of the +-``wall_band`` the local wall depth is measured in; one head's wall peak was cut there, its
+    wall went to returns 5 cm in front, and its wall returns read as pulses through the plane: two false windows
+    under the eave. Here campaign 2 is 15 cm off
+    campaign 1 and four times as noisy, so the fused plane stays on campaign 1's wall and campaign 2's lies 14 cm
+    behind it, out of the band: its whole façade read as one unknown region and the window only it saw (the van hid
+    it from campaign 1) was not added. Each campaign is observed against its own wall."""
+    first = make_scene()
+    cloud, traj, fps, truth = make_scene(van=False, step=0.07, seed=5, noise=0.02)
+    drift = -0.15 * truth["wall_normal"]  # behind the wall, points and trajectory alike
+    cloud = dataclasses.replace(cloud, xyz=cloud.xyz + drift)
+    traj = dataclasses.replace(traj, xyz=traj.xyz + drift)
+    m1 = refine_map(BuildingMap(crs_wkt=CRS_UTM.to_wkt()), *first[:3], FacadeParams(), RefineParams(), campaign_id=1)
+    m2 = refine_map(m1, cloud, traj, fps, FacadeParams(), RefineParams(), campaign_id=2)
+    f1, f2 = m1.buildings["B1"].facades[0], m2.buildings["B1"].facades[0]
+    assert 2 in f2.campaigns
+    hidden = [_facade_rect(f.frame, first[3]["hidden_windows"][0]) for f in (f1, f2)]
+    assert not any(polygon_iou(e.polygon, hidden[0]) > 0.5 for e in _openings(f1).values())
+    assert max(polygon_iou(e.polygon, hidden[1]) for e in _openings(f2).values()) > 0.8
+    truths = [_facade_rect(f2.frame, w) for w in truth["windows"] + truth["hidden_windows"] + [truth["door"]]]
+    false = [e for e in _openings(f2).values() if max(polygon_iou(e.polygon, t) for t in truths) < 0.5]
+    assert not false
+
+
 def test_as_of_reproduces_the_earlier_export_exactly(synthetic_maps, tmp_path):
     from lidarmap.export.cityjson import map_to_cityjson
     from lidarmap.map.store import MapStore

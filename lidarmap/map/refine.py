@@ -1415,15 +1415,20 @@ def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, po
     normal3 = np.array([normal2[0], normal2[1], 0.0])
     u1 = np.array([-normal2[1], normal2[0], 0.0])
     frame1 = FacadeFrame(origin=centre + mu_main * normal3 - s_mid * u1, u=u1)
+    # the campaign is observed against its own wall (s, t stay the fused frame's): GPS drift puts it cm off the
+    # fused plane, and a wall 8-10 cm behind that plane was cut at the edge of the band the local wall depth is
+    # measured in (hard dev seed 147)
+    mu_own = new_layers[j_main].mu
+    frame_obs = FacadeFrame(origin=centre + mu_own * normal3 - s_mid * u1, u=u1)
     # the extent grows where the campaign's wall reaches beyond it
-    std1 = frame1.to_facade(xyz)
-    obs_layers = [dataclasses.replace(la, mu=la.mu - mu_main) for la in new_layers]
+    std1 = frame_obs.to_facade(xyz)
+    obs_layers = [dataclasses.replace(la, mu=la.mu - mu_own) for la in new_layers]
     labels = np.full(len(std1), -1, dtype=np.int64)
     labels[keep] = assign_layers(std1[keep, 2], obs_layers, fparams.layers.sigma_k)
     on_main = labels == j_main
     extent1 = _extended_extent(stored.extent, std1[on_main, :2], cell, params)
     tm["layers"] = tm.get("layers", 0.0) + time.perf_counter() - clock
-    obs = observe_facade(camp, frame1, extent1, fparams, campaign_id, seed=seed, polygon=polygon,
+    obs = observe_facade(camp, frame_obs, extent1, fparams, campaign_id, seed=seed, polygon=polygon,
                          member_ids=member_ids, layers=obs_layers, tm=tm)
     if obs is None:
         return None
