@@ -330,10 +330,10 @@ def test_a_later_campaign_off_the_stored_plane_by_gps_drift_still_adds_the_windo
     """Hard dev seed 147: a later campaign's wall lay 8-10 cm behind the fused plane (GPS drift between campaigns),
     at the edge of the +-``wall_band`` the local wall depth is measured in; one head's wall peak was cut there, its
     wall went to returns 5 cm in front, and its wall returns read as pulses through the plane: two false windows
-    under the eave. Here campaign 2 is 15 cm off
-    campaign 1 and four times as noisy, so the fused plane stays on campaign 1's wall and campaign 2's lies 14 cm
-    behind it, out of the band: its whole façade read as one unknown region and the window only it saw (the van hid
-    it from campaign 1) was not added. Each campaign is observed against its own wall."""
+    under the eave. Here campaign 2 is 15 cm off campaign 1 and four times as noisy, so the fused plane stays on
+    campaign 1's wall and campaign 2's lies 14 cm behind it, out of the band: its whole façade read as one unknown
+    region and the window only it saw (the van hid it from campaign 1) was not added. Each campaign is observed
+    against its own wall."""
     first = make_scene()
     cloud, traj, fps, truth = make_scene(van=False, step=0.07, seed=5, noise=0.02)
     drift = -0.15 * truth["wall_normal"]  # behind the wall, points and trajectory alike
