@@ -21,7 +21,8 @@ Refinement of one stored façade by one campaign (:func:`refine_facade`), in the
 3. **Plane**: the new main layer's 3σ inliers give a PCA normal, combined with the stored one weighted by point counts;
    the frame is turned about the façade's middle and moved so that the fused main layer is at d = 0 again. The
    extent grows (whole cells, so the evidence grids stay aligned) where the new wall reaches beyond it.
-4. :func:`lidarmap.facade.observe.observe.observe_facade` gives what the campaign saw on the (grown) grid; the evidence grids add up:
+4. :func:`lidarmap.facade.observe.observe.observe_facade` gives what the campaign saw on the (grown) grid, its depths
+   measured from the campaign's own wall (GPS drift puts it cm off the fused plane); the evidence grids add up:
    ``window_votes`` / ``object_votes`` / ``seen`` count campaigns per pixel. A campaign sampling the façade more
    sparsely than ``min_element_density`` (side walls at grazing angles) and more sparsely than the stored façade
    (:func:`stored_density`) refines the plane and layers only.
@@ -1414,12 +1415,16 @@ def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, po
     centre = frame0.to_crs(np.array([[s_mid, 0.0, 0.0]]))[0]
     normal3 = np.array([normal2[0], normal2[1], 0.0])
     u1 = np.array([-normal2[1], normal2[0], 0.0])
-    frame1 = FacadeFrame(origin=centre + mu_main * normal3 - s_mid * u1, u=u1)
+
+    def frame_at(mu: float) -> FacadeFrame:  # the new plane at depth mu of the stored axis; s and t the same
+        return FacadeFrame(origin=centre + mu * normal3 - s_mid * u1, u=u1)
+
+    frame1 = frame_at(mu_main)
     # the campaign is observed against its own wall (s, t stay the fused frame's): GPS drift puts it cm off the
     # fused plane, and a wall 8-10 cm behind that plane was cut at the edge of the band the local wall depth is
     # measured in (hard dev seed 147)
     mu_own = new_layers[j_main].mu
-    frame_obs = FacadeFrame(origin=centre + mu_own * normal3 - s_mid * u1, u=u1)
+    frame_obs = frame_at(mu_own)
     # the extent grows where the campaign's wall reaches beyond it
     std1 = frame_obs.to_facade(xyz)
     obs_layers = [dataclasses.replace(la, mu=la.mu - mu_own) for la in new_layers]
