@@ -458,6 +458,24 @@ def test_narrow_window_whose_frame_returns_wall_points_keeps_its_size():
     assert plain.kind is ElementKind.WINDOW and plain.bounds[1] - plain.bounds[0] == pytest.approx(0.5, abs=0.03)
 
 
+
+def test_a_gap_four_cells_square_is_no_opening_though_its_grown_box_is_half_a_metre():
+    """A hole of 4 x 4 cells (0.4 x 0.4 m) without wall samples along its sides: each side grows half a cell
+    (``edge_bias_cells``), the box measures 0.5 x 0.5 m, above ``min_opening_size`` (0.45), and such gaps were
+    windows on walls without any opening (issue 18 round 16, dev seeds 125, 134, 145, 160 after one campaign). A
+    hole as narrow whose cells span the minimum the other way (a narrow window seen 0.4 m wide) stays a window."""
+    from lidarmap.facade.openings import HOLE, OBJECT, detect_openings
+
+    values = np.full((40, 40), OBJECT, dtype=np.int8)
+    values[10:14, 10:14] = HOLE  # s 1.0-1.4, t 1.0-1.4
+    values[10:22, 25:29] = HOLE  # s 2.5-2.9, t 1.0-2.2
+    ops = sorted(detect_openings(values, 0.1, FacadeParams()), key=lambda op: op.region.nonzero()[1].min())
+    assert [op.kind for op in ops] == [ElementKind.UNKNOWN, ElementKind.WINDOW]
+    assert ops[1].bounds == pytest.approx((2.45, 2.95, 0.95, 2.25))
+    # the measured box alone decided before: the gap was a 0.5 m square window
+    kept = detect_openings(values, 0.1, FacadeParams().updated(min_opening_size=0.4))
+    assert [op.kind for op in sorted(kept, key=lambda op: op.region.nonzero()[1].min())] == [ElementKind.WINDOW] * 2
+
 def test_door_typing_by_size_ground_line_and_leaf():
     """door_or_window on one opening 2.1 m tall on the ground line (0.1 m above it): 0.9 m wide a door, 0.6 m wide
     a window (too narrow for a leaf); 2.6 m wide a door only when a leaf closes it (a garage), else a shop front."""

@@ -241,7 +241,8 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
       left or right border cuts: :func:`_cut_side`), larger than ``max_opening_area``, more than
       ``occlusion_touch_max`` of its border occluded (unless wall encloses it: :func:`enclosed_by_wall`), fill
       ratio below ``Ta``, rectangle ε_w above
-      ``max_window_uncertainty`` or a side below ``min_opening_size``: UNKNOWN (uncertainty inf);
+      ``max_window_uncertainty``, a side below ``min_opening_size`` or cells spanning less than it both ways:
+      UNKNOWN (uncertainty inf);
     * door-sized and reaching the ground (:func:`door_or_window`; ``ground_t``: ground height per grid column in
       façade t, default: the grid's bottom edge ``t0``; ``opaque``: share of passing pulses back from just behind):
       DOOR, unless the border cuts it (wall was required below it);
@@ -314,7 +315,10 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
                 sides = tuple(named and k != cut for k, named in enumerate(sides))
             hidden = occ_border > params.openings.occlusion_touch_max and not enclosed_by_wall(
                 work, rect, params, sides=sides)
-        if hidden or eps > params.openings.max_window_uncertainty \
+        # a gap whose cells span less than min_opening_size both ways is no opening, however far the half-cell
+        # growth of sides without wall samples (edge_bias_cells) carries its box
+        gap = max(rect[1] - rect[0], rect[3] - rect[2]) * cell < params.openings.min_opening_size - 1e-9
+        if hidden or gap or eps > params.openings.max_window_uncertainty \
                 or min(width, height) < params.openings.min_opening_size:
             unknown.rect = seen_rect if hidden else None
             out.append(unknown)

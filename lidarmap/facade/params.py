@@ -274,7 +274,8 @@ class OpeningParams:
     min_hole_area (0.12): smaller holes are sampling gaps.
     max_opening_area (16.0): larger holes are UNKNOWN.
     min_opening_size (0.45): windows/doors narrower or lower than this are UNKNOWN (the visible corner of a
-        mostly hidden opening is not a window).
+        mostly hidden opening is not a window), and so are holes whose cells span less than this both ways (a
+        4 x 4 cell gap whose sides, without wall samples, grow by edge_bias_cells to 0.5 m is not a window).
     max_window_uncertainty (0.5): rectangles with a larger eq. (3) ε_w are UNKNOWN.
     occlusion_touch_max (0.6): holes with more of their border occluded are UNKNOWN (mostly hidden: the
         opening may continue behind the occluder); they still vote as window evidence. Below it the visible part
