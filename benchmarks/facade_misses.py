@@ -12,6 +12,10 @@ per scored error:
 * ``FALSE``: a map window/door that no truth opening of its kind matches (nor overlaps one hardly seen), or one on
   no truth façade at all.
 
+``--summary`` ends with the errors counted by class after each campaign, all of them and those new after each later
+campaign (:func:`error_class`): typing errors (a door found as a window), shape errors (IoU 0.1-0.5), slivers (a
+false opening under 0.65 m one way over no truth opening), misses with nothing over them.
+
 Reserved evaluation seeds (``lidarmap.sim.family.EVAL_SEEDS``) are refused: they are for benchmark figures only.
 """
 
@@ -19,8 +23,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 import tempfile
+from collections import Counter
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -107,6 +113,52 @@ def error_lines(m: BuildingMap, truth, campaigns: list[int]) -> list[str]:
     return lines
 
 
+SLIVER = 0.65  # m: a false opening narrower or lower than this over no truth opening is a sliver
+_MISS = re.compile(r"MISS .* (window|door)/\S+ s .*best map opening IoU ([\d.]+) \(([\w-]+)\)")
+_FALSE = re.compile(r"FALSE .* (window|door) s ([\d.-]+)-([\d.-]+) t ([\d.-]+)-([\d.-]+); best truth element IoU "
+                    r"([\d.]+)(?: \((\w+)\))?")
+
+
+def error_class(line: str) -> str:
+    """The class of one error line of :func:`error_lines` (what ``--summary`` counts)."""
+    m = _MISS.search(line)
+    if m:
+        kind, iou, other = m.group(1), float(m.group(2)), m.group(3)
+        if iou >= 0.5 and other != kind:
+            return f"{kind} typed {other}"
+        return f"{kind} missed, shape (IoU {iou:.1f})" if iou > 0.1 else f"{kind} missed, nothing over it"
+    m = _FALSE.search(line)
+    if m:
+        kind, iou, other = m.group(1), float(m.group(6)), m.group(7)
+        width, height = float(m.group(3)) - float(m.group(2)), float(m.group(5)) - float(m.group(4))
+        if iou >= 0.5 and other != kind:
+            return f"false {kind} over a {other}"
+        if iou > 0.1:
+            return f"false {kind}, shape"
+        return f"false {kind}, sliver" if min(width, height) < SLIVER else f"false {kind}, over nothing"
+    return "false, on no truth façade" if "on no truth façade" in line else "other"
+
+
+def _key(line: str) -> str:
+    """An error line without what each campaign saw of the opening (that list grows with every campaign)."""
+    return re.sub(r" seen by campaign \[[^\]]*\]", "", line)
+
+
+def summary(per_campaign: list[list[list[str]]]) -> list[str]:
+    """Error counts by class after each campaign, over scenes (``per_campaign[scene][k]``: the error lines after
+    campaign k + 1), and those new after each later campaign (not among the scene's lines one campaign before,
+    :func:`_key`)."""
+    out = []
+    for k in range(max((len(c) for c in per_campaign), default=0)):
+        every = Counter(error_class(x) for c in per_campaign if k < len(c) for x in c[k])
+        new = Counter(error_class(x) for c in per_campaign if 0 < k < len(c)
+                      for x in c[k] if _key(x) not in {_key(y) for y in c[k - 1]})
+        out.append(f"after {k + 1}: " + ", ".join(f"{n} {name}" for name, n in every.most_common()))
+        if k:
+            out.append(f"  new after {k + 1}: " + ", ".join(f"{n} {name}" for name, n in new.most_common()))
+    return out
+
+
 def diagnose(root: Path) -> list[str]:
     """Fuse the campaigns of the scene in ``root`` one by one; the scores and errors after each."""
     truth = load_truth(root)
@@ -128,23 +180,40 @@ def diagnose(root: Path) -> list[str]:
     return out
 
 
+def by_campaign(lines: list[str]) -> list[list[str]]:
+    """The error lines of one scene's :func:`diagnose` output, one list per campaign (split at the score lines)."""
+    out: list[list[str]] = []
+    for line in lines:
+        if line.startswith("seed "):
+            out.append([])
+        elif out:
+            out[-1].append(line)
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", required=True, help="comma-separated development seeds")
     ap.add_argument("--family", default="hard", choices=("hard", "standard"))
     ap.add_argument("--campaigns", type=int, default=3)
     ap.add_argument("--keep", type=Path, default=None, help="keep (or reuse) the simulated scenes under this folder")
+    ap.add_argument("--summary", action="store_true", help="end with the errors counted by class (error_class)")
     args = ap.parse_args(argv)
     seeds = [int(x) for x in args.seeds.split(",")]
     reserved = sorted(set(seeds) & set(EVAL_SEEDS))
     if reserved:
         ap.error(f"seeds {reserved} are reserved for evaluation (lidarmap.sim.family.EVAL_SEEDS): not diagnosed")
+    scenes: list[list[list[str]]] = []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in seeds:
             root = (args.keep or Path(tmp)) / f"{args.family}{seed}"
             if not (root / "truth" / "scene.json").exists():
                 simulate(str(root), family_params(args.family, seed, campaigns=args.campaigns))
-            print("\n".join(diagnose(root)), flush=True)
+            lines = diagnose(root)
+            print("\n".join(lines), flush=True)
+            scenes.append(by_campaign(lines))
+    if args.summary:
+        print("\n".join(["", f"errors by class over {len(scenes)} scenes:"] + summary(scenes)))
 
 
 if __name__ == "__main__":
