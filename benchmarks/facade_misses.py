@@ -151,8 +151,9 @@ def summary(per_campaign: list[list[list[str]]]) -> list[str]:
     out = []
     for k in range(max((len(c) for c in per_campaign), default=0)):
         every = Counter(error_class(x) for c in per_campaign if k < len(c) for x in c[k])
-        new = Counter(error_class(x) for c in per_campaign if 0 < k < len(c)
-                      for x in c[k] if _key(x) not in {_key(y) for y in c[k - 1]})
+        before = [{_key(y) for y in c[k - 1]} if 0 < k < len(c) else set() for c in per_campaign]
+        new = Counter(error_class(x) for c, old in zip(per_campaign, before) if 0 < k < len(c)
+                      for x in c[k] if _key(x) not in old)
         out.append(f"after {k + 1}: " + ", ".join(f"{n} {name}" for name, n in every.most_common()))
         if k:
             out.append(f"  new after {k + 1}: " + ", ".join(f"{n} {name}" for name, n in new.most_common()))
