@@ -929,6 +929,34 @@ def test_a_window_verdict_from_a_shape_too_short_for_a_door_does_not_retype_a_do
         assert fused[0].polygon.bounds[3] - fused[0].polygon.bounds[1] >= 1.95
 
 
+def test_a_window_verdict_from_a_shape_too_wide_for_an_open_door_does_not_retype_a_narrower_door():
+    """Issue 18 round 17 (dev seeds 175 and 225): a door 1.46 m wide that campaign 1 measured 1.94 m wide, wider
+    than ``open_door_max_width`` (1.8), so its detection typed it a window (an opening that wide is a door only when
+    a leaf closes it); campaign 3 saw it square on, 1.46 m wide, and typed it a door, but the stored window held
+    more evidence and the fused opening, 1.46 m wide, stayed a window. That shape's verdict may have come from its
+    width alone, which the fused rectangle no longer has: it does not vote, the door wins. Where the fused
+    rectangle stays wider than ``open_door_max_width`` the stored window still votes and wins."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    window = box(1.0, 0.4, 2.94, 2.6)  # as campaign 1 measured it
+    door = box(1.2, 0.4, 2.66, 2.6)  # as campaign 3 saw it
+    sizes = OpeningParams()  # open_door_max_width 1.8
+    strips = grid.raster(window) & ~grid.raster(door)
+    for strips_wall, kind, width in ((3, ElementKind.DOOR, 1.46), (0, ElementKind.WINDOW, 1.94)):
+        stored = [Element(3, ElementKind.WINDOW, window, None, 0.1, campaigns=[1])]
+        new = [Element(0, ElementKind.DOOR, door, None, 0.05, campaigns=[3])]
+        old_w, new_w = 2 * grid.raster(window).astype(int), grid.raster(door).astype(int)
+        objects = 3 * (~grid.raster(window)).astype(int) + strips_wall * strips.astype(int)
+        votes = _Votes(grid, old_w + new_w, objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
+                       np.ones(grid.shape, bool), window_new=new_w)
+        fused, _ = _fuse_openings(stored, new, votes, _Ids(stored + new), RefineParams(), (0.0, 4.0, 0.0, 4.0), [],
+                                  0.45, sizes)
+        assert [(e.element_id, e.kind) for e in fused] == [(3, kind)], strips_wall
+        b = fused[0].polygon.bounds
+        assert b[2] - b[0] == pytest.approx(width, abs=0.06), b
+
+
 def test_a_fused_opening_without_a_door_size_is_a_window_whoever_voted_door():
     """Issue 18 round 13 (dev seed 178): campaign 1 found a glazed window 1.8 m tall; campaign 2 saw it 2.2 m tall
     and typed it a door. The refit cut the fused rectangle back to the window

@@ -783,11 +783,24 @@ def _kind_voters(members: list[Element], fused, doors: OpeningParams | None) -> 
     rectangle has no door's size was a window by its size alone (the detection types such shapes windows before
     it looks at the ground): once the fused rectangle has a door's size and another shape saw a door there, that
     verdict no longer applies and it does not vote (issue 18 round 7, dev seed 104: a flush door 2.03 m tall
-    that one campaign measured 1.94 m, 1 cm below ``door_min_height``, became a window)."""
+    that one campaign measured 1.94 m, 1 cm below ``door_min_height``, became a window). Likewise a window wider
+    than ``open_door_max_width`` may be a window by its width alone (the detection types an opening that wide a
+    window unless a leaf closes it): it does not vote on a fused rectangle no wider than that (issue 18 round 17,
+    dev seeds 175 and 225: doors 1.46-1.47 m wide that an earlier campaign measured 1.85-1.94 m wide stayed
+    windows against the door a later campaign saw square on)."""
     if doors is None or not _door_sized(fused, doors) \
             or not any(m.kind is ElementKind.DOOR for m in members):
         return [True] * len(members)
-    return [m.kind is not ElementKind.WINDOW or _door_sized(m.polygon, doors) for m in members]
+    narrow = _width(fused) <= doors.open_door_max_width + 1e-9
+    return [m.kind is not ElementKind.WINDOW
+            or (_door_sized(m.polygon, doors) and not (narrow and _width(m.polygon) > doors.open_door_max_width))
+            for m in members]
+
+
+def _width(polygon) -> float:
+    """A rectangle's extent along the façade (s)."""
+    s0, _, s1, _ = polygon.bounds
+    return s1 - s0
 
 
 def _own_votes(w: np.ndarray, o: np.ndarray, claimed: np.ndarray, kept_ties: np.ndarray | None = None) -> np.ndarray:
