@@ -732,6 +732,38 @@ def test_open_shutters_beside_a_window_do_not_widen_it():
     assert gap[2:10, 9 - k:15 + k].all() and not gap[2:10, :9 - k].any() and not gap[2:10, 15 + k:].any()
 
 
+def test_one_or_two_stray_pulses_through_an_unsampled_band_are_no_opening():
+    """Issue 18 round 17 (dev seeds 102, 116, 230: blank side walls under hipped roofs, sampled at a grazing angle):
+    in a band under the eave that no scan line sampled, one or two pulses passed the plane (the roof behind it);
+    ``evidence_grow_cells`` grew each into a 5 x 5 cell patch and the detection made 0.5-0.6 m "windows" of them
+    (after campaign 1 of 14 dev scenes, 12 windows with fewer than 3 such cells, all false; the fewest a true
+    window had was 4). A patch needs ``min_pass_cells`` cells that pulses passed, unless it holds door-leaf cells
+    (a flush door returns most pulses from within ``pass_depth``: few pass); a window sampled by sparse scan lines,
+    a few pulses per line, still is one patch."""
+    from lidarmap.facade.evidence import CellEvidence, opening_cells, stray_patches
+
+    zeros = np.zeros((30, 40))
+    wall = zeros.copy()
+    wall[:10] = 2  # the wall below the band; nothing sampled above it
+    recessed = zeros.copy()
+    recessed[14, 5] = 1  # one stray pulse
+    recessed[14, 20] = recessed[15, 22] = 1  # two
+    recessed[18:26:3, 30:37:2] = 1  # a window crossed by 3 scan lines 0.3 m apart, 4 pulses each
+    ev = CellEvidence(wall, recessed, zeros, zeros, zeros)
+    params = FacadeParams()
+    cells = opening_cells(ev, params)
+    assert cells[12:17, 3:8].all() and cells[14, 20]  # each stray pulse grows a 5 x 5 patch ...
+    stray = stray_patches(cells, ev, params)
+    assert np.array_equal(stray, cells & (np.arange(40) < 27)[None, :])  # ... which is dropped
+    assert cells[18:25, 30:37].all()  # the lines' pulses, grown, join into one patch over the window: kept
+    assert params.evidence.min_pass_cells == 3 and params.evidence.evidence_grow_cells == 2
+    leaf = zeros.astype(bool)
+    leaf[14, 21] = True  # a door leaf's cell in the two-pulse patch keeps it
+    kept = stray_patches(cells, ev, params, leaf)
+    assert not kept[12:18, 18:25].any() and kept[12:17, 3:8].all()
+    assert not stray_patches(cells, ev, params.updated(min_pass_cells=1)).any()
+
+
 # ----------------------------------------------------------------------------------------------------------------------
 # Two crossed scanner heads that disagree on the wall's depth
 

@@ -328,6 +328,23 @@ def opening_cells(ev: CellEvidence, params: FacadeParams) -> np.ndarray:
     return hole
 
 
+def stray_patches(cells: np.ndarray, ev: CellEvidence, params: FacadeParams,
+                  keep: np.ndarray | None = None) -> np.ndarray:
+    """The connected patches (8-neighbours) of opening ``cells`` that hold fewer than ``min_pass_cells`` cells
+    pulses passed (:func:`opening_cells` before its growth) and none of the ``keep`` cells (door leaves): one or
+    two stray pulses through an unsampled band, grown by ``evidence_grow_cells`` into a 0.5 m square, are no
+    evidence of an opening (issue 18 round 17)."""
+    p = params.evidence
+    if p.min_pass_cells <= 1 or not cells.any():
+        return np.zeros(cells.shape, dtype=bool)
+    seeds = cells & (ev.passed >= p.min_pass_pulses) & (ev.wall <= p.max_wall_share * ev.pulses)
+    labels, n = ndimage.label(cells, structure=np.ones((3, 3), dtype=bool))
+    evidenced = np.bincount(labels[seeds], minlength=n + 1)
+    if keep is not None:
+        evidenced[np.unique(labels[keep & cells])] = p.min_pass_cells
+    return cells & (evidenced[labels] < p.min_pass_cells)
+
+
 def wall_offset(s: np.ndarray, t: np.ndarray, rel: np.ndarray, shape: tuple[int, int], s0: float, t0: float,
                 cell: float, band: float) -> tuple[np.ndarray, np.ndarray]:
     """Per cell the mean depth, relative to the local wall, of the returns within ``band`` of it (NaN: none) and

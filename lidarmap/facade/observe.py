@@ -38,6 +38,7 @@ from lidarmap.facade.evidence import (
     opening_cells,
     recessed_share,
     scanner_heads,
+    stray_patches,
     vote_weights,
     wall_offset,
 )
@@ -466,6 +467,8 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
     no_cells = np.zeros(shape, dtype=bool)
     leaves, crossed_leaf = door_leaves(ev, passed, ground_t, t0, cell, params) if ray else (no_cells, no_cells)
     passed = passed | leaves | crossed_leaf
+    if ray:
+        passed &= ~stray_patches(passed, ev, params, leaves | crossed_leaf)
     observed = surf.observed & ~(passed if ray else (through & ~surf.observed_raw))
     if ray and ev.front is not None:
         # returns a few cm in front of the wall (open shutters, relief) sampled the cell even where they fit no layer

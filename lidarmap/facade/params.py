@@ -451,6 +451,10 @@ class EvidenceParams:
         2-3 cm back with 1 cm range noise returns a third of its pulses within pass_depth of the wall).
     evidence_grow_cells (2): cells without any pulse within this many cells of an opening cell join it (scan
         lines of a far façade lie further apart than a cell; the opening's edge lies somewhere in the gap).
+    min_pass_cells (3): ... and a connected patch of opening cells needs at least this many cells that pulses
+        passed (before that growth): one or two stray pulses through the plane (a roof above the eave of a side
+        wall sampled at a grazing angle) grow into a 0.5 m square, no evidence of an opening; it is unsampled
+        (a patch holding door-leaf cells stays).
     opaque_share (0.7): an opening whose passing pulses came back at least this often (mean over its cells) from
         just behind the wall (within layer_back) is closed by a leaf (a door; glass, rooms and dark openings less).
     leaf_min_cos (0.2): ... counting only cells whose pulses met the wall at a cosine of incidence of at least this
@@ -480,6 +484,7 @@ class EvidenceParams:
         "min_pass_pulses": ">= 1",
         "max_wall_share": "[0, 1]",
         "evidence_grow_cells": ">= 0",
+        "min_pass_cells": ">= 1",
         "opaque_share": "[0, 1]",
         "leaf_min_cos": "[0, 1]",
         "leaf_offset": "> 0",
@@ -499,6 +504,7 @@ class EvidenceParams:
     min_pass_pulses: int = 1
     max_wall_share: float = 0.45
     evidence_grow_cells: int = 2
+    min_pass_cells: int = 3
     opaque_share: float = 0.7
     leaf_min_cos: float = 0.2
     door_leaf: bool = True
