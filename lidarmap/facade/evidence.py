@@ -312,14 +312,21 @@ def cell_evidence(wall_sdt: np.ndarray, wall_sensors: np.ndarray, behind_sdt: np
                         front=front)
 
 
+def _pass_cells(ev: CellEvidence, params: FacadeParams) -> np.ndarray:
+    """Cells at least ``min_pass_pulses`` pulses passed, at most ``max_wall_share`` of whose pulses returned from
+    the wall (:func:`opening_cells` before its growth)."""
+    p = params.evidence
+    return (ev.passed >= p.min_pass_pulses) & (ev.wall <= p.max_wall_share * ev.pulses)
+
+
 def opening_cells(ev: CellEvidence, params: FacadeParams) -> np.ndarray:
     """Cells the laser went through: at least ``min_pass_pulses`` pulses passed the plane there and at most
     ``max_wall_share`` of the cell's pulses returned from the wall; cells with no pulse at all within
     ``evidence_grow_cells`` of such a cell join it: the scan lines of a far façade are further apart than a cell.
     Cells with returns in front of the wall (``ev.front``: open shutters beside a window) are no such gap."""
     p = params.evidence
-    passed, pulses = ev.passed, ev.pulses
-    hole = (passed >= p.min_pass_pulses) & (ev.wall <= p.max_wall_share * pulses)
+    pulses = ev.pulses
+    hole = _pass_cells(ev, params)
     k = p.evidence_grow_cells
     if k > 0 and hole.any():  # the edge lies somewhere between the last pulse through and the first on the wall
         # a cell whose pulses stopped in front of the wall (an open shutter beside the window) is no gap
@@ -337,7 +344,7 @@ def stray_patches(cells: np.ndarray, ev: CellEvidence, params: FacadeParams,
     p = params.evidence
     if p.min_pass_cells <= 1 or not cells.any():
         return np.zeros(cells.shape, dtype=bool)
-    seeds = cells & (ev.passed >= p.min_pass_pulses) & (ev.wall <= p.max_wall_share * ev.pulses)
+    seeds = cells & _pass_cells(ev, params)
     labels, n = ndimage.label(cells, structure=np.ones((3, 3), dtype=bool))
     evidenced = np.bincount(labels[seeds], minlength=n + 1)
     if keep is not None:

@@ -787,7 +787,7 @@ def _kind_voters(members: list[Element], fused, doors: OpeningParams | None) -> 
     than ``open_door_max_width`` may be a window by its width alone (the detection types an opening that wide a
     window unless a leaf closes it): it does not vote on a fused rectangle no wider than that (issue 18 round 17,
     dev seeds 175 and 225: doors 1.46-1.47 m wide that an earlier campaign measured 1.85-1.94 m wide stayed
-    windows against the door a later campaign saw square on)."""
+    windows against the door a later campaign saw)."""
     if doors is None or not _door_sized(fused, doors) \
             or not any(m.kind is ElementKind.DOOR for m in members):
         return [True] * len(members)
