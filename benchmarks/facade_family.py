@@ -48,13 +48,17 @@ def parse_seeds(text: str) -> list[int]:
     return out
 
 
+def _counts(s) -> dict:
+    return {"all": [s.tp, s.fp, s.fn], "door": [s.door[k] for k in COUNTS], "window": [s.window[k] for k in COUNTS],
+            "false_blank": s.false_blank, "blank_area": round(s.blank_area, 2)}
+
+
 def scene_record(family: str, seed: int) -> dict:
-    """One scene simulated, fused campaign by campaign and scored: counts after each campaign (JSON-ready)."""
-    run = facade_scores.run_scene(family, seed)
+    """One scene simulated, fused campaign by campaign and scored (JSON-ready): counts after each campaign against
+    the openings seen so far (``after``) and against those the first campaign saw (``fixed``)."""
+    run = facade_scores.run_scene(family, seed, fixed=True)
     return {"family": family, "seed": seed, "points": run.points, "seconds": [round(s, 2) for s in run.seconds],
-            "after": [{"all": [s.tp, s.fp, s.fn], "door": [s.door[k] for k in COUNTS],
-                       "window": [s.window[k] for k in COUNTS], "false_blank": s.false_blank,
-                       "blank_area": round(s.blank_area, 2)} for s in run.scores]}
+            "after": [_counts(s) for s in run.scores], "fixed": [_counts(s) for s in run.fixed]}
 
 
 def f1(counts) -> float:
@@ -62,45 +66,58 @@ def f1(counts) -> float:
     return 2 * tp / max(1, 2 * tp + fp + fn)
 
 
-def scene_f1(rec: dict, key: str = "all") -> list[float]:
-    return [f1(a[key]) for a in rec["after"]]
+def scene_f1(rec: dict, key: str = "all", truth: str = "after") -> list[float]:
+    return [f1(a[key]) for a in rec[truth]]
 
 
-def drops(rec: dict) -> list[tuple[int, float, int]]:
+def drops(rec: dict, truth: str = "after") -> list[tuple[int, float, int]]:
     """(campaign, F1 lost, openings lost) for every campaign after which the scene's W+D F1 is lower than before;
-    openings lost = rise in fp + fn (each wrong or missed opening counts once; a retyped one counts twice)."""
+    openings lost = rise in fp + fn (each wrong or missed opening counts once; a retyped one counts twice).
+    ``truth``: "after" (the openings seen so far) or "fixed" (those the first campaign saw)."""
     out = []
-    for k in range(1, len(rec["after"])):
-        before, now = rec["after"][k - 1]["all"], rec["after"][k]["all"]
+    for k in range(1, len(rec[truth])):
+        before, now = rec[truth][k - 1]["all"], rec[truth][k]["all"]
         lost = f1(before) - f1(now)
         if lost > 1e-12:
             out.append((k + 1, lost, (now[1] + now[2]) - (before[1] + before[2])))
     return out
 
 
-def pooled(records: list[dict], k: int, key: str = "all") -> list[int]:
-    return [sum(r["after"][k][key][i] for r in records) for i in range(3)]
+def pooled(records: list[dict], k: int, key: str = "all", truth: str = "after") -> list[int]:
+    return [sum(r[truth][k][key][i] for r in records) for i in range(3)]
+
+
+def _drop_line(records: list[dict], truth: str) -> str:
+    every = [x for r in records for x in drops(r, truth)]
+    if not every:
+        return "none"
+    lost = sorted(o for _, _, o in every)
+    return (f"{len(every)} in {sum(bool(drops(r, truth)) for r in records)} scenes; F1 lost median "
+            f"{sorted(x for _, x, _ in every)[len(every) // 2]:.3f}, largest {max(x for _, x, _ in every):.3f}; "
+            "openings lost (fp + fn) per drop: " + ", ".join(f"{o:+d}: {lost.count(o)}" for o in sorted(set(lost))))
 
 
 def summary(records: list[dict]) -> str:
     """The markdown of the module docstring for ``records`` (scene_record dicts, any order)."""
     records = sorted(records, key=lambda r: (r["family"], r["seed"]))
     n = min(len(r["after"]) for r in records)
-    lines = ["| seed | W+D F1 after " + " / ".join(str(k + 1) for k in range(n)) + " | door F1 | drops |",
-             "|---|---|---|---|"]
+    has_fixed = all(r.get("fixed") for r in records)
+    lines = ["| seed | W+D F1 after " + " / ".join(str(k + 1) for k in range(n))
+             + (" | on the first campaign's openings" if has_fixed else "") + " | door F1 | drops |",
+             "|---|---|---|---|" + ("---|" if has_fixed else "")]
     for r in records:
-        f, d = scene_f1(r)[:n], scene_f1(r, "door")[:n]
-        lines.append(f"| {r['seed']} | {' / '.join(f'{x:.3f}' for x in f)} | {' / '.join(f'{x:.3f}' for x in d)} | "
+        cells = [scene_f1(r)[:n]] + ([scene_f1(r, truth="fixed")[:n]] if has_fixed else []) + [scene_f1(r, "door")[:n]]
+        lines.append(f"| {r['seed']} | " + " | ".join(" / ".join(f"{x:.3f}" for x in c) for c in cells) + " | "
                      + ", ".join(f"after {k}: -{lost:.3f} ({o:+d})" for k, lost, o in drops(r)) + " |")
     after = [pooled(records, k) for k in range(n)]
     doors = [pooled(records, k, "door") for k in range(n)]
-    lines.append(f"| **pooled ({len(records)})** | **{' / '.join(f'{f1(a):.4f}' for a in after)}** | "
-                 f"**{' / '.join(f'{f1(d):.3f}' for d in doors)}** | |")
+    fixed = [pooled(records, k, truth="fixed") for k in range(n)] if has_fixed else []
+    pooled_cells = [" / ".join(f"{f1(a):.4f}" for a in rows) for rows in (after, fixed) if rows]
+    lines.append(f"| **pooled ({len(records)})** | " + " | ".join(f"**{c}**" for c in pooled_cells)
+                 + f" | **{' / '.join(f'{f1(d):.3f}' for d in doors)}** | |")
     false = [sum(r["after"][k]["false_blank"] for r in records) for k in range(n)]
     area = [sum(r["after"][k]["blank_area"] for r in records) for k in range(n)]
     falling = [r for r in records if drops(r)]
-    every_drop = [x for r in records for x in drops(r)]
-    lost_openings = sorted(o for _, _, o in every_drop)
     lines += ["", f"Scenes: {len(records)} ({', '.join(sorted({r['family'] for r in records}))}), {n} campaigns.",
               "- Pooled W+D F1 after each campaign: " + " -> ".join(f"{f1(a):.4f}" for a in after)
               + f" (tp/fp/fn after 1: {'/'.join(map(str, after[0]))}; after {n}: {'/'.join(map(str, after[-1]))}).",
@@ -110,11 +127,14 @@ def summary(records: list[dict]) -> str:
               f"{sum(scene_f1(r)[n - 1] >= TARGET_LAST for r in records)}/{len(records)}; door F1 >= {TARGET_DOOR} "
               f"after every campaign: {sum(min(scene_f1(r, 'door')[:n]) >= TARGET_DOOR for r in records)}"
               f"/{len(records)}; never decreasing: {len(records) - len(falling)}/{len(records)}.",
-              f"- Drops: {len(every_drop)} in {len(falling)} scenes; F1 lost "
-              + (f"median {sorted(x for _, x, _ in every_drop)[len(every_drop) // 2]:.3f}, largest "
-                 f"{max(x for _, x, _ in every_drop):.3f}; openings lost (fp + fn) per drop: "
-                 + ", ".join(f"{o:+d}: {lost_openings.count(o)}" for o in sorted(set(lost_openings)))
-                 if every_drop else "none") + ".",
+              f"- Drops: {_drop_line(records, 'after')}."]
+    if fixed:
+        steady = sum(not drops(r, "fixed") for r in records)
+        lines += ["- On the openings the first campaign saw (a truth set that does not grow), pooled W+D F1: "
+                  + " -> ".join(f"{f1(a):.4f}" for a in fixed) + f" (tp/fp/fn after 1: {'/'.join(map(str, fixed[0]))};"
+                  f" after {n}: {'/'.join(map(str, fixed[-1]))}); never decreasing {steady}/{len(records)}; drops: "
+                  f"{_drop_line(records, 'fixed')}."]
+    lines += [
               "- False openings on blank walls after each campaign: " + " / ".join(
                   f"{c} on {a:,.0f} m² ({500 * c / a:.2f} per 500 m²)" if a else f"{c} on 0 m²"
                   for c, a in zip(false, area)) + "."]

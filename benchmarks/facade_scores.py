@@ -136,21 +136,25 @@ class SceneRun:
     seconds: list[float]
     openings: int  # truth windows + doors of existing buildings
     setups: list[str]
+    # the map after each campaign scored on the openings the first campaign saw (a truth set that does not grow:
+    # what refinement did to them, apart from the openings later campaigns bring into the score); score_scene(fixed=)
+    fixed: list[MapScore] = dataclasses.field(default_factory=list)
 
 
-def run_scene(family: str, seed: int, campaigns: int = 3) -> SceneRun:
-    """Simulate one scene and fuse its campaigns one by one, scoring the map after each."""
+def run_scene(family: str, seed: int, campaigns: int = 3, fixed: bool = False) -> SceneRun:
+    """Simulate one scene and fuse its campaigns one by one, scoring the map after each (``fixed``: score_scene)."""
     with tempfile.TemporaryDirectory() as tmp:
         simulate(tmp, family_params(family, seed, campaigns=campaigns))
-        return score_scene(Path(tmp))
+        return score_scene(Path(tmp), fixed=fixed)
 
 
-def score_scene(root: Path) -> SceneRun:
-    """Fuse the campaigns of the simulated scene in ``root`` one by one, scoring the map after each."""
+def score_scene(root: Path, fixed: bool = False) -> SceneRun:
+    """Fuse the campaigns of the simulated scene in ``root`` one by one, scoring the map after each; ``fixed``: also
+    against the openings the first campaign saw (:attr:`SceneRun.fixed`)."""
     fparams, rparams = FacadeParams(), RefineParams()
     truth = load_truth(root)
     m = BuildingMap(crs_wkt=truth.crs.to_wkt())
-    points, scores, secs = [], [], []
+    points, scores, secs, first_seen = [], [], [], []
     for k, camp in enumerate(truth.campaigns, start=1):
         cloud, traj = read_las(camp.laz), read_trajectory(camp.trajectory)
         fps = read_footprints(root / "footprints.geojson", crs=cloud.crs)
@@ -159,10 +163,12 @@ def score_scene(root: Path) -> SceneRun:
         secs.append(time.perf_counter() - clock)
         points.append(len(cloud))
         scores.append(score_map(list(m.buildings.values()), truth, [c.id for c in truth.campaigns[:k]]))
+        if fixed:
+            first_seen.append(score_map(list(m.buildings.values()), truth, [truth.campaigns[0].id]))
     openings = sum(1 for e in truth.elements.values() if e.kind in ("window", "door"))
     setups = [_setup(c) for c in truth.doc["campaigns"]]
     return SceneRun(truth.doc.get("family", "standard"), int(truth.doc["seed"]), points, scores, secs, openings,
-                    setups)
+                    setups, first_seen)
 
 
 def _setup(c: dict) -> str:
