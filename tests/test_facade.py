@@ -611,6 +611,41 @@ def tiny_sim(tmp_path_factory):
     return truth, camp, buildings, time.perf_counter() - start, len(cloud)
 
 
+def _scored_wall_held_as(pieces: list[list[tuple[float, float]]]) -> dict:
+    """Scores of map façades on one truth wall (20 m, four 1 x 1.5 m windows at s = 2, 7, 12, 17, all seen):
+    ``pieces`` gives each map façade's windows as (s0, s1) on the same frame."""
+    from types import SimpleNamespace
+
+    from lidarmap.facade.eval import evaluate_facades
+    from lidarmap.facade.model import Element, Facade
+    from lidarmap.sim.truth import TruthElement, TruthFacade
+
+    origin, u = np.array([100.0, 200.0, 0.0]), np.array([1.0, 0.0, 0.0])
+    windows = [TruthElement(id=i, facade_id=1, kind="window", subtype="window", rect=(s, s + 1.0, 1.0, 2.5),
+                            depth=-0.2, has_interior=True, room=None, corners=np.zeros((4, 3)),
+                            visible_fraction={1: 1.0}, hit_fraction={1: 1.0})
+               for i, s in enumerate((2.0, 7.0, 12.0, 17.0))]
+    wall = TruthFacade(id=1, building_id=5, edge=0, origin=origin, u=u, width=20.0, t_bottom=0.0, t_eave=6.0,
+                       t_top=6.0, street_facing=True, elements=windows)
+    facades = [Facade(facade_id=k, frame=FacadeFrame(origin=origin, u=u), sigma=0.01,
+                      extent=(min(a for a, _ in spans) - 1.0, max(b for _, b in spans) + 1.0, 0.0, 6.0),
+                      elements=[Element(j, ElementKind.WINDOW, box(a, 1.0, b, 2.5), None, 0.1)
+                                for j, (a, b) in enumerate(spans)])
+               for k, spans in enumerate(pieces)]
+    truth = SimpleNamespace(buildings=[SimpleNamespace(id=5, facades=[wall])])
+    return evaluate_facades([SimpleNamespace(building_id="5", facades=facades)], truth, 1)["window"]
+
+
+def test_a_wall_held_as_two_map_facades_counts_each_truth_opening_once():
+    """A later campaign may add a second piece of a stored wall: each truth opening is matched, missed or found twice
+    once over both pieces (before 2026-12-01 each piece was scored against all four windows: 4 tp, 4 fn here)."""
+    halves = _scored_wall_held_as([[(2.0, 3.0), (7.0, 8.0)], [(12.0, 13.0), (17.0, 18.0)]])
+    assert (halves["tp"], halves["fp"], halves["fn"]) == (4, 0, 0)
+    # a window on both pieces is one match and one false opening, not two matches
+    overlap = _scored_wall_held_as([[(2.0, 3.0), (7.0, 8.0)], [(7.0, 8.0), (12.0, 13.0)]])
+    assert (overlap["tp"], overlap["fp"], overlap["fn"]) == (3, 1, 1)
+
+
 def test_simulated_scene_window_f1_and_plane_offset(tiny_sim):
     from lidarmap.facade.eval import evaluate_facades
 

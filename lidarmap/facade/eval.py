@@ -6,7 +6,10 @@ model). Matching rules:
 * an extracted façade matches the truth façade of the same building (footprint id = truth building id) whose
   normal is within 10° and whose plane passes within 1 m of the extracted façade's centre;
 * a window/door/structure matches a truth one of the same kind at IoU >= ``iou`` in the truth façade's (s, t) (greedy, best
-  IoU first). Only truth openings with ``visible_fraction[campaign] >= min_visible`` count (true positives and false
+  IoU first, one to one over the elements of *all* extracted façades that match that truth façade: a wall held as
+  two façades counts each truth opening once, and an opening found on both as one match and one false positive;
+  until 2026-12-01 each extracted façade was scored against all of the truth façade's openings, so the openings of
+  one piece counted as missed by the other). Only truth openings with ``visible_fraction[campaign] >= min_visible`` count (true positives and false
   negatives); predictions on less visible truth openings (IoU > 0.1) count neither way. Truth façades that no
   extracted façade matched contribute their visible openings as false negatives. For a map refined by several
   campaigns pass ``campaigns``: an opening is visible when the cells seen by *any* of them (the truth's
@@ -170,8 +173,9 @@ def _score_kind(pred: list[Polygon], true: list, visible: list[bool], kind: str,
     c["fn"] += sum(1 for j in range(len(true)) if visible[j] and j not in matched_t)
 
 
-def _score_facade(f: Facade, tb, register: Callable | None, iou: float, is_visible: Callable, tally: _Tally) -> None:
-    """One extracted façade against its building's truth: all its elements false when it matches no truth façade."""
+def _on_truth(f: Facade, tb, register: Callable | None, tally: _Tally, on_truth: dict) -> None:
+    """Put one extracted façade's elements on the truth façade it matches (``on_truth``: truth façade id -> (truth
+    façade, [(kind, rectangle in its s, t)])); all its elements are false when it matches none."""
     tally.n_facades += 1
     tf = match_facade(f, tb.facades, register) if tb is not None else None
     preds = [e for e in f.elements if e.kind.value in SCORED_KINDS]
@@ -181,10 +185,8 @@ def _score_facade(f: Facade, tb, register: Callable | None, iou: float, is_visib
         return
     tally.matched_truth.add(tf.id)
     _plane_errors(f, tf, register, tally)
-    for kind in SCORED_KINDS:
-        pred = [_to_truth_rect(f, e.polygon, tf, register) for e in preds if e.kind.value == kind]
-        true = [e for e in tf.elements if e.kind == kind]
-        _score_kind(pred, true, [is_visible(e) for e in true], kind, iou, tally)
+    rects = on_truth.setdefault(tf.id, (tf, []))[1]
+    rects += [(e.kind.value, _to_truth_rect(f, e.polygon, tf, register)) for e in preds]
 
 
 def evaluate_facades(buildings: list[ObservedBuilding], truth, campaign_id: int, register: Callable | None = None,
@@ -205,9 +207,16 @@ def evaluate_facades(buildings: list[ObservedBuilding], truth, campaign_id: int,
 
     tally = _Tally()
     by_building = {str(b.id): b for b in truth.buildings}
+    on_truth: dict[int, tuple] = {}
     for b in buildings:
         for f in b.facades:
-            _score_facade(f, by_building.get(str(b.building_id)), register, iou, is_visible, tally)
+            _on_truth(f, by_building.get(str(b.building_id)), register, tally, on_truth)
+    # one truth façade is scored once, against the elements of every extracted façade on it: a wall the map holds
+    # as two façades (a piece a later campaign added) has each truth opening matched, missed or duplicated once
+    for tf, rects in on_truth.values():
+        for kind in SCORED_KINDS:
+            true = [e for e in tf.elements if e.kind == kind]
+            _score_kind([r for k, r in rects if k == kind], true, [is_visible(e) for e in true], kind, iou, tally)
     for tb in truth.buildings:  # truth façades nobody found: their visible openings are missed
         for tf in tb.facades:
             if tf.id in tally.matched_truth:
