@@ -181,6 +181,25 @@ def test_glazed_windows_returning_30_percent_from_the_glass_are_found(street):
     assert len(openings) == 2 + len(GLAZED), [(k.value, p.bounds) for k, _, p in openings]
 
 
+def test_a_wall_on_no_footprint_edge_holds_no_opening():
+    """Issue 18 round 20 (dev seed 297): the side of a set-back, parallel to a footprint edge but 4.8 m behind it,
+    became a façade of its own, and a later campaign found two "windows" in it, on no wall of the building. The
+    street façade with a footprint turned 12° about the wall's middle (``edge_angle_deg`` 10: the wall lies on no
+    edge, every point within ``max_footprint_distance`` of it): the wall is still found, with no window or door."""
+    cloud, traj, fps = _street_scene(glass_share=0.3)
+    a = math.radians(12.0)
+    c = np.array([7.0, WALL_Y])
+    u, n = np.array([math.cos(a), math.sin(a)]), np.array([-math.sin(a), math.cos(a)])
+    corners = [c - 7.5 * u, c + 7.5 * u, c + 7.5 * u + 10.0 * n, c - 7.5 * u + 10.0 * n]
+    turned = Footprints(ids=["B1"], polygons=np.array([Polygon(np.array(corners) + OFFSET[:2])], dtype=object),
+                        properties=[{}], crs=CRS_UTM, source="footprints.geojson")
+    buildings = extract_buildings(cloud, traj, turned, FacadeParams(), campaign_id=1, seed=0)
+    facades = [f for b in buildings for f in b.facades]
+    assert facades and all(f.footprint_edge is None for f in facades), [f.footprint_edge for f in facades]
+    assert _openings(buildings) == []
+    assert all(f.evidence.window_votes.sum() == 0 for f in facades)
+
+
 # ----------------------------------------------------------------------------------------------------------------------
 # Missed pulses from the GPS times
 
@@ -320,6 +339,14 @@ def test_a_window_the_facade_extent_cuts_at_its_jamb_is_a_window_when_wall_close
     values[0:60, 0:3] = HOLE  # a strip along the border over the whole height: no rectangle of its own
     values[20:36, 3:12] = OBJECT
     assert [op.kind for op in detect_openings(values, 0.1, FacadeParams()) if op.n_cells > 20] == [ElementKind.UNKNOWN]
+    # issue 18 round 20 (dev seed 270): the same hole at the top corner, one row of wall above it (the eave's
+    # last samples): the corner under the roof, not a window
+    values[0:60, 0:3] = OBJECT
+    values[52:59, 0:9] = HOLE
+    assert [op.kind for op in detect_openings(values, 0.1, FacadeParams()) if op.n_cells > 20] == [ElementKind.UNKNOWN]
+    values[52:59, 0:9] = OBJECT
+    values[48:55, 0:9] = HOLE  # five rows of wall above it: a window
+    assert [op.kind for op in detect_openings(values, 0.1, FacadeParams()) if op.n_cells > 20] == [ElementKind.WINDOW]
 
 
 def test_french_window_behind_a_balcony_parapet_reaches_down_to_it():
@@ -493,6 +520,32 @@ def test_door_typing_by_size_ground_line_and_leaf():
     assert kind(2.6, shut) is ElementKind.DOOR and kind(2.6, glazed) is ElementKind.WINDOW
     assert door_or_window((0.0, 0.9, 0.9, 3.0), 0.0, mask, glazed, params) is ElementKind.WINDOW  # a 0.9 m sill
     assert door_or_window((0.0, 0.9, 0.9, 3.0), 0.0, mask, shut, params) is ElementKind.DOOR  # a leaf up the steps
+
+
+
+def test_a_narrow_door_whose_side_ends_in_an_occluded_strip_is_a_door():
+    """Issue 18 round 20 (dev seed 272): a van hid the left part of a door; the campaign saw 0.64 m of it, a
+    column of frame, then the van's shadow, and typed it a window (narrower than ``door_min_width``). A side that
+    ends at cells the campaign did not see (:func:`side_hidden`: most of the columns beyond it occluded) bounds the
+    width from below only. A reveal's shadow fringe of one or two columns before the wall does not."""
+    from lidarmap.facade.openings import HOLE, OBJECT, OCCLUDED, door_or_window, side_hidden
+
+    params = FacadeParams()  # enclosed_reach_cells 4, door_min_width 0.7
+    values = np.full((30, 30), OBJECT)
+    rect = (1, 27, 12, 18)  # 0.6 m x 2.6 m at 0.1 m cells
+    values[1:27, 12:18] = HOLE
+    fringe = values.copy()
+    fringe[1:27, 10:12] = OCCLUDED  # two shadow columns, then wall
+    van = values.copy()
+    van[1:27, 3:11] = OCCLUDED  # one column of frame, then the van's shadow
+    assert not side_hidden(values, rect, params) and not side_hidden(fringe, rect, params)
+    assert side_hidden(van, rect, params)
+    mask = np.ones((26, 6), dtype=bool)
+    bounds = (1.2, 1.8, 0.1, 2.7)
+    assert door_or_window(bounds, 0.0, mask, None, params) is ElementKind.WINDOW
+    assert door_or_window(bounds, 0.0, mask, None, params, width_cut=True) is ElementKind.DOOR
+    # the cut lifts the width limit only: on a 0.9 m sill it stays a window
+    assert door_or_window((1.2, 1.8, 0.9, 2.9), 0.0, mask, None, params, width_cut=True) is ElementKind.WINDOW
 
 
 GRAZING_WINDOW = (9.0, 10.2, 0.85, 2.9)  # y0, y1, z0, z1 on the side wall x = 30: 2.05 m tall on a 0.85 m sill

@@ -929,6 +929,17 @@ def test_a_window_verdict_from_a_shape_too_short_for_a_door_does_not_retype_a_do
         assert fused[0].polygon.bounds[3] - fused[0].polygon.bounds[1] >= 1.95
 
 
+def _fused_pair(grid, stored, new, old_w, new_w, objects, doors) -> list:
+    """The openings after fusing ``new`` into ``stored`` on a 4 m x 4 m façade: window votes of the earlier
+    campaigns ``old_w`` and of the new one ``new_w``, wall weight ``objects``, every cell seen by two."""
+    from lidarmap.map.refine import _fuse_openings, _Ids, _Votes
+
+    votes = _Votes(grid, old_w + new_w, objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
+                   np.ones(grid.shape, bool), window_new=new_w)
+    return _fuse_openings(stored, new, votes, _Ids(stored + new), RefineParams(), (0.0, 4.0, 0.0, 4.0), [], 0.45,
+                          doors)[0]
+
+
 def test_a_window_verdict_from_a_shape_too_wide_for_an_open_door_does_not_retype_a_narrower_door():
     """Issue 18 round 17 (dev seeds 175 and 225): a door 1.46 m wide that campaign 1 measured 1.94 m wide, wider
     than ``open_door_max_width`` (1.8), so its detection typed it a window (an opening that wide is a door only when
@@ -936,7 +947,7 @@ def test_a_window_verdict_from_a_shape_too_wide_for_an_open_door_does_not_retype
     more evidence and the fused opening, 1.46 m wide, stayed a window. That shape's verdict may have come from its
     width alone, which the fused rectangle no longer has: it does not vote, the door wins. Where the fused
     rectangle stays wider than ``open_door_max_width`` the stored window still votes and wins."""
-    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+    from lidarmap.map.refine import _Grid
 
     grid = _Grid(0.0, 0.0, 0.1, (40, 40))
     window = box(1.0, 0.4, 2.94, 2.6)  # as campaign 1 measured it
@@ -948,10 +959,7 @@ def test_a_window_verdict_from_a_shape_too_wide_for_an_open_door_does_not_retype
         new = [Element(0, ElementKind.DOOR, door, None, 0.05, campaigns=[3])]
         old_w, new_w = 2 * grid.raster(window).astype(int), grid.raster(door).astype(int)
         objects = 3 * (~grid.raster(window)).astype(int) + strips_wall * strips.astype(int)
-        votes = _Votes(grid, old_w + new_w, objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
-                       np.ones(grid.shape, bool), window_new=new_w)
-        fused, _ = _fuse_openings(stored, new, votes, _Ids(stored + new), RefineParams(), (0.0, 4.0, 0.0, 4.0), [],
-                                  0.45, sizes)
+        fused = _fused_pair(grid, stored, new, old_w, new_w, objects, sizes)
         assert [(e.element_id, e.kind) for e in fused] == [(3, kind)], strips_wall
         b = fused[0].polygon.bounds
         assert b[2] - b[0] == pytest.approx(width, abs=0.06), b
@@ -963,7 +971,7 @@ def test_a_fused_opening_without_a_door_size_is_a_window_whoever_voted_door():
     (wall above and below it), but the door shape held more evidence over it and the opening stayed a door, 1.8 m
     tall: the detection would never type such a rectangle a door. A rectangle the refit leaves door-sized keeps the
     door's verdict."""
-    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+    from lidarmap.map.refine import _Grid
 
     grid = _Grid(0.0, 0.0, 0.1, (40, 40))
     sizes = OpeningParams()  # door_min_height 1.95
@@ -973,10 +981,7 @@ def test_a_fused_opening_without_a_door_size_is_a_window_whoever_voted_door():
         w_cells = grid.raster(window)
         old_w, new_w = w_cells.astype(int), 2 * w_cells.astype(int)
         objects = 3 * (~w_cells).astype(int)  # campaign 1: wall all around the window
-        votes = _Votes(grid, old_w + new_w, objects, np.full(grid.shape, 2), np.ones(grid.shape, int),
-                       np.ones(grid.shape, bool), window_new=new_w)
-        fused, _ = _fuse_openings(stored, new, votes, _Ids(stored + new), RefineParams(), (0.0, 4.0, 0.0, 4.0), [],
-                                  0.45, sizes)
+        fused = _fused_pair(grid, stored, new, old_w, new_w, objects, sizes)
         assert [(e.element_id, e.kind) for e in fused] == [(3, kind)], window.bounds
         assert np.allclose(fused[0].polygon.bounds, window.bounds, atol=0.06), fused[0].polygon.bounds  # sides averaged
 
@@ -1093,3 +1098,26 @@ def test_the_extent_grows_to_the_last_full_column_not_to_a_few_points_past_the_c
     assert _extended_extent((0.0, 10.0, 0.0, 10.0), st, 0.1, dataclasses.replace(params, extend_column_share=0.0))[1] > 10.6
     s0 = _extended_extent((11.0, 20.0, 0.0, 10.0), np.column_stack([21.0 - st[:, 0], st[:, 1]]), 0.1, params)[0]
     assert 10.4 <= s0 <= 10.55, s0  # the lower side the same way (moved by whole cells)
+
+
+def test_a_door_two_campaigns_saw_stays_a_door_when_a_third_narrows_it_below_a_door_width():
+    """Issue 18 round 20 (dev seed 273): a flush door 0.98 m wide that campaigns 1 and 2 found; campaign 3 saw the
+    edge of its leaf as wall and found it 0.6 m wide. The refit followed the wall votes and the fused rectangle,
+    narrower than ``door_min_width`` (0.7), was retyped a window, though every campaign had seen a door. A door
+    verdict of two campaigns or more stands; where a campaign typed it a window, the fused size decides."""
+    from lidarmap.map.refine import _Grid
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    door = box(1.0, 0.4, 2.0, 2.6)
+    narrow = box(1.4, 0.4, 2.0, 2.6)
+    strip = grid.raster(door) & ~grid.raster(narrow)
+    sizes = OpeningParams()  # door_min_width 0.7
+    for seen_as, kind in ((ElementKind.DOOR, ElementKind.DOOR), (ElementKind.WINDOW, ElementKind.WINDOW)):
+        stored = [Element(3, ElementKind.DOOR, door, None, 0.05, campaigns=[1, 2])]
+        new = [Element(0, seen_as, narrow, None, 0.05, campaigns=[3])]
+        old_w, new_w = grid.raster(door).astype(int), grid.raster(narrow).astype(int)
+        objects = 3 * (~grid.raster(door)).astype(int) + 4 * strip.astype(int)  # the leaf's edge read as wall
+        fused = _fused_pair(grid, stored, new, old_w, new_w, objects, sizes)
+        assert [(e.element_id, e.kind) for e in fused] == [(3, kind)], seen_as
+        b = fused[0].polygon.bounds
+        assert b[2] - b[0] < 0.7, b  # the refit did narrow it: the kind, not the size, is what this rule keeps

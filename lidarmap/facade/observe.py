@@ -636,14 +636,21 @@ def _observation(frame: FacadeFrame, surf: _Surface, vis: _Visibility, found: _E
     s0, s1, t0, t1 = surf.extent
     seen = (vis.values != OCCLUDED).astype(np.int32)
     object_votes = np.where((vis.values == OBJECT) & ~found.door_cells, vis.weights, 0).astype(np.int32)
-    evidence = FacadeEvidence(cell=surf.cell, s0=s0, t0=t0, window_votes=found.window_votes,
-                              object_votes=object_votes, seen=seen)
     edge = match_footprint_edge(frame, (s0, s1), polygon, params)[0] if polygon is not None else None
+    items, window_votes = found.items, found.window_votes
+    if polygon is not None and edge is None:
+        # a plane on no edge of the footprint is no wall of the building (the side of a protrusion or of a recess, a
+        # neighbour's wall through a gap): its gaps are no windows of it (issue 18 round 20, dev seed 297: the side
+        # of a set-back 2.6 m deep, 4.8 m behind the wall parallel to it, held two "windows" a later campaign found)
+        items = [e for e in items if e.kind not in (ElementKind.WINDOW, ElementKind.DOOR)]
+        window_votes = np.zeros_like(window_votes)
+    evidence = FacadeEvidence(cell=surf.cell, s0=s0, t0=t0, window_votes=window_votes,
+                              object_votes=object_votes, seen=seen)
     counts = np.bincount(surf.labels[surf.labels >= 0], minlength=len(surf.layers))
     for la, n in zip(surf.layers, counts):
         la.n_points = int(n)
     return Facade(facade_id=0, frame=frame, sigma=float(surf.main.sigma), extent=(s0, s1, t0, t1),
-                  layers=surf.layers, elements=found.items, main_layer=surf.main.layer_id,
+                  layers=surf.layers, elements=items, main_layer=surf.main.layer_id,
                   n_points=int((surf.labels >= 0).sum()), footprint_edge=edge, campaigns=[campaign_id],
                   evidence=evidence)
 

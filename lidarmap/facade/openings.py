@@ -323,7 +323,8 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
             unknown.rect = seen_rect if hidden else None
             out.append(unknown)
             continue
-        kind = door_or_window(bounds, float(np.mean(ground[rect[2]:rect[3]])), mask, opaque, params)
+        kind = door_or_window(bounds, float(np.mean(ground[rect[2]:rect[3]])), mask, opaque, params,
+                              width_cut=side_hidden(work, rect, params))
         if cut is not None:  # wall closes it below: no door, whatever the ground line of a wall seen this little
             kind = ElementKind.WINDOW
         if low is not None:
@@ -385,6 +386,16 @@ def below_floor_level(openings: list[Opening], ground: np.ndarray, params: Facad
     return done
 
 
+def side_hidden(values: np.ndarray, rect: tuple[int, int, int, int], params: FacadeParams) -> bool:
+    """Whether the left or right side of a rectangle (r0, r1, c0, c1) ends at cells the campaign did not see: more
+    than half of the ``enclosed_reach_cells`` columns beyond it, over its rows, are occluded (a reveal's shadow
+    fringe or a door frame is a column or two; an occluder's shadow is wider). The opening may go on behind them."""
+    r0, r1, c0, c1 = rect
+    k = max(params.openings.enclosed_reach_cells, 1)
+    bands = (values[r0:r1, max(c0 - k, 0):c0], values[r0:r1, c1:c1 + k])
+    return any(b.shape[1] == k and float(np.mean(b == OCCLUDED)) > 0.5 for b in bands)
+
+
 def _cut_side(values: np.ndarray, box: tuple[int, int, int, int], params: FacadeParams) -> int | None:
     """The side (0 left, 1 right, as ``enclosed_by_wall`` names them) of a hole's bounding box (r0, r1, c0, c1)
     that the façade's extent cuts, when the hole is a whole opening there all the same, else ``None``.
@@ -393,10 +404,13 @@ def _cut_side(values: np.ndarray, box: tuple[int, int, int, int], params: Facade
     angle), and it can end at a window's jamb: the hole then touches the grid's left or right border. It is taken
     as whole when wall closes its three other sides (:func:`enclosed_by_wall`): a rectangle of its own, not the
     gap past a building's corner nor a strip of unobserved wall along the border (those have no wall above and
-    below). With wall below it such a hole is a window. Without such a side it stays an unknown region."""
+    below). With wall below it such a hole is a window. Without such a side it stays an unknown region. The wall
+    above must be the façade's, not its last row: a hole cut by the extent whose top lies within
+    ``enclosed_reach_cells`` of the grid's top is the corner under the eave (issue 18 round 20, dev seed 270: a
+    jagged 0.6 m hole at the corner of a façade's top, closed above by one row of wall, became a window)."""
     r0, r1, c0, c1 = box
     rows, cols = values.shape
-    if r0 == 0 or r1 >= rows or (c0 == 0) == (c1 >= cols):
+    if r0 == 0 or r1 + max(params.openings.enclosed_reach_cells, 1) > rows or (c0 == 0) == (c1 >= cols):
         return None
     side = 0 if c0 == 0 else 1
     return side if enclosed_by_wall(values, box, params, sides=(side == 1, side == 0, True, True)) else None
@@ -466,7 +480,7 @@ def structure_below(rect: tuple[int, int, int, int], values: np.ndarray, front: 
 
 
 def door_or_window(bounds: tuple[float, float, float, float], ground: float, mask: np.ndarray,
-                   opaque: np.ndarray | None, params: FacadeParams) -> ElementKind:
+                   opaque: np.ndarray | None, params: FacadeParams, width_cut: bool = False) -> ElementKind:
     """A door is at least ``door_min_height`` tall, ``door_min_width`` .. ``door_max_width`` wide and starts within
     ``door_bottom_tol`` of the ground line below it, or within ``door_leaf_tol`` when it is closed by a leaf: on
     average over its cells with passing pulses (those 2 cells or more inside its border: reveals catch pulses
@@ -474,10 +488,12 @@ def door_or_window(bounds: tuple[float, float, float, float], ground: float, mas
     wall (``opaque``: that share per cell, NaN without passing pulses; a door at the top of steps). An opening
     wider than ``open_door_max_width`` is a door only when closed by such a leaf (a garage door): glazed shop
     fronts let most pulses through. Everything else, shop windows and windows with low sills included, is a
-    window."""
+    window. ``width_cut``: a side of the opening ends at cells the campaign could not see
+    (:func:`side_hidden`), so its width is a lower bound and no minimum width applies (issue 18 round 20, dev seed
+    272: a door whose left part a van hid measured 0.64 m wide and was stored as a window)."""
     op = params.openings
     width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
-    if not op.door_sized(width, height):
+    if not op.door_sized(max(width, op.door_min_width) if width_cut else width, height):
         return ElementKind.WINDOW
     # a leaf closes the whole opening; the reveals of an open window catch pulses along its border only
     core = ndimage.binary_erosion(mask, structure=np.ones((5, 5), dtype=bool))

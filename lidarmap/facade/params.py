@@ -67,6 +67,8 @@ class PlaneParams:
         wall, are one façade (its layers, or a short spurious fit through pilasters, reveals and door leaves;
         a genuinely different wall 20° off is longer than merge_depth / tan 20° = 4 m and stays apart).
     edge_angle_deg (10.0): a footprint edge matches a façade within this angle (and max_footprint_distance).
+        A façade that matches no edge of its footprint (the side of a set-back or a recess, a neighbour's wall
+        through a gap) is kept with its layers but holds no window or door, nor window evidence.
     facade_margin (0.3): points up to this beyond a façade's ends still belong to it.
     """
 
@@ -319,7 +321,8 @@ class OpeningParams:
         of their neighbours (a street hidden by parked cars left bins of 1-8 points labelled ground at 4-12 m:
         a window on the first floor above them became a door, dev seed 136).
     door_min_width (0.7): ... and at least this wide (a door leaf with its frame; tall narrow windows on a low sill
-        are windows) ...
+        are windows), unless a side ends at cells the campaign did not see (most of the enclosed_reach_cells
+        columns beyond it occluded: a van hid the rest) ...
     door_max_width (3.5): ... and at most this wide (shop windows and glazed fronts are wider: windows) ...
     open_door_max_width (1.8): ... and wider than this only when closed by an opaque leaf (garage doors; glazed
         shop fronts 2-4 m wide with a sill near the ground let most pulses through: windows).

@@ -756,10 +756,12 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     # the kind of the fused rectangle goes by the evidence each shape holds over it: the part of a shape the refit
     # rejected (a door shape twice the window's width, its other half wall) has no say in what the opening is
     evidence_over = _member_weights(members, n_old, votes, g.raster(poly))
-    votes_on_kind = [(m.kind, w) for m, w, v in zip(members, evidence_over, _kind_voters(members, poly, doors))
-                     if v]
+    voters = _kind_voters(members, poly, doors)
+    voting = [m for m, v in zip(members, voters) if v]
+    votes_on_kind = [(m.kind, w) for m, w, v in zip(members, evidence_over, voters) if v]
     kind = weighted_kind([k for k, _ in votes_on_kind], [w for _, w in votes_on_kind], keeper.kind)
-    if kind is ElementKind.DOOR and doors is not None and not _door_sized(poly, doors):
+    if kind is ElementKind.DOOR and doors is not None and not _door_sized(poly, doors) \
+            and not _door_by_campaigns(voting):
         # the detection types an opening without a door's size a window whatever else it sees, and so does the
         # fusion (issue 18 round 13, dev seed 178: a glazed window 1.82 m tall that one campaign saw 2.2 m tall
         # and typed a door stayed a door after the refit cut it to 1.69 m)
@@ -769,6 +771,14 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     campaigns = sorted({c for m in members for c in m.campaigns})
     return Element(element_id=keep_id, kind=kind, polygon=poly, layer_id=layer_id, uncertainty=float(eps),
                    n_points=int(sum(m.n_points for m in members)), campaigns=campaigns)
+
+
+def _door_by_campaigns(voting: list[Element]) -> bool:
+    """Whether every shape voting on an opening's kind is a door, from two campaigns or more: then the door stays
+    a door when the refit makes it smaller than a door (issue 18 round 20, dev seed 273: a flush door two
+    campaigns measured 0.98 m wide became a 0.67 m window after a third saw the edge of its leaf as wall)."""
+    return bool(voting) and all(m.kind is ElementKind.DOOR for m in voting) \
+        and len({c for m in voting for c in m.campaigns}) >= 2
 
 
 def _door_sized(polygon, doors: OpeningParams) -> bool:
