@@ -198,6 +198,10 @@ def test_a_wall_on_no_footprint_edge_holds_no_opening():
     assert facades and all(f.footprint_edge is None for f in facades), [f.footprint_edge for f in facades]
     assert _openings(buildings) == []
     assert all(f.evidence.window_votes.sum() == 0 for f in facades)
+    # the rule is a parameter (derived footprints run without it): off, the wall keeps its windows and door
+    kept = extract_buildings(cloud, traj, turned, FacadeParams().updated(openings_need_edge=False), campaign_id=1,
+                             seed=0)
+    assert len(_openings(kept)) == 2 + len(GLAZED)
 
 
 # ----------------------------------------------------------------------------------------------------------------------

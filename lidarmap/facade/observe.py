@@ -638,7 +638,7 @@ def _observation(frame: FacadeFrame, surf: _Surface, vis: _Visibility, found: _E
     object_votes = np.where((vis.values == OBJECT) & ~found.door_cells, vis.weights, 0).astype(np.int32)
     edge = match_footprint_edge(frame, (s0, s1), polygon, params)[0] if polygon is not None else None
     items, window_votes = found.items, found.window_votes
-    if polygon is not None and edge is None:
+    if polygon is not None and edge is None and params.planes.openings_need_edge:
         # a plane on no edge of the footprint is no wall of the building (the side of a protrusion or of a recess, a
         # neighbour's wall through a gap): its gaps are no windows of it (issue 18 round 20, dev seed 297: the side
         # of a set-back 2.6 m deep, 4.8 m behind the wall parallel to it, held two "windows" a later campaign found)

@@ -67,8 +67,10 @@ class PlaneParams:
         wall, are one façade (its layers, or a short spurious fit through pilasters, reveals and door leaves;
         a genuinely different wall 20° off is longer than merge_depth / tan 20° = 4 m and stays apart).
     edge_angle_deg (10.0): a footprint edge matches a façade within this angle (and max_footprint_distance).
-        A façade that matches no edge of its footprint (the side of a set-back or a recess, a neighbour's wall
-        through a gap) is kept with its layers but holds no window or door, nor window evidence.
+    openings_need_edge (True): a façade that matches no edge of its footprint (the side of a set-back or a recess,
+        a neighbour's wall through a gap) is kept with its layers but holds no window or door, nor window evidence.
+        False: every façade holds them. Buildings whose footprint was derived from the points (docs/mls.md: grid
+        cells, edges that do not follow the walls) always run with False.
     facade_margin (0.3): points up to this beyond a façade's ends still belong to it.
     """
 
@@ -108,6 +110,7 @@ class PlaneParams:
     merge_angle_deg: float = 20.0
     merge_depth: float = 1.5
     edge_angle_deg: float = 10.0
+    openings_need_edge: bool = True
     facade_margin: float = 0.3
 
     def __post_init__(self) -> None:

@@ -41,6 +41,7 @@ from lidarmap.io.points import (
     read_points_header,
 )
 from lidarmap.io.trajectory import read_trajectory
+from lidarmap.map.model import DERIVED
 from lidarmap.map.update import CampaignSource
 
 log = logging.getLogger(__name__)
@@ -193,9 +194,6 @@ def mobile_campaign(points: Path, trajectory: Path | None, crs: Any, columns: st
 # ----------------------------------------------------------------------------------------------------------------------
 # Without footprints: buildings found from the points, kept by the map
 
-
-#: Attribute marking a building whose footprint was derived from the points (lidarmap.facade.discover).
-DERIVED = "derived_footprint"
 
 
 def _track_positions(trajectory: Trajectory, most: int = 200_000) -> np.ndarray:

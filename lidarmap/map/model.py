@@ -14,6 +14,10 @@ from shapely.geometry import Polygon
 
 from lidarmap.facade.model import Facade
 
+#: Building attribute marking a footprint derived from the points (lidarmap.facade.discover): a polygon of grid
+#: cells whose edges do not follow the walls.
+DERIVED = "derived_footprint"
+
 
 @dataclasses.dataclass
 class RoofPlane:

@@ -72,7 +72,7 @@ from lidarmap.facade.params import FacadeParams
 from lidarmap.facade.planes import check_points, join_footprints
 from lidarmap.facade.scan import CampaignScan, CampaignStats, PointClasses, StatsPass
 from lidarmap.io.spool import ColumnSpool
-from lidarmap.map.model import Building, BuildingMap
+from lidarmap.map.model import DERIVED, Building, BuildingMap
 from lidarmap.map.refine import RefineParams, _campaign_applied, refine_building
 
 log = logging.getLogger(__name__)
@@ -413,6 +413,8 @@ def building_task(job: BuildingJob, camp: CampaignData, fparams: FacadeParams,
     if not len(ids):
         return BuildingOutcome(None, 0, tm)
     seed, rng = building_rng(job.seed, job.building_id)
+    if job.properties.get(DERIVED) or (job.stored is not None and job.stored.attributes.get(DERIVED)):
+        fparams = fparams.updated(openings_need_edge=False)  # a derived footprint's edges do not follow the walls
     if job.stored is not None:
         result = refine_building(job.stored, camp, ids, fparams, rparams, job.campaign_id, seed, rng, tm)
         return BuildingOutcome(result, len(ids), tm)
