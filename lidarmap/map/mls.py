@@ -195,7 +195,6 @@ def mobile_campaign(points: Path, trajectory: Path | None, crs: Any, columns: st
 # Without footprints: buildings found from the points, kept by the map
 
 
-
 def _track_positions(trajectory: Trajectory, most: int = 200_000) -> np.ndarray:
     step = max(1, len(trajectory.xyz) // most)
     return trajectory.xyz[::step]

@@ -761,7 +761,7 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     votes_on_kind = [(m.kind, w) for m, w, v in zip(members, evidence_over, voters) if v]
     kind = weighted_kind([k for k, _ in votes_on_kind], [w for _, w in votes_on_kind], keeper.kind)
     if kind is ElementKind.DOOR and doors is not None and not _door_sized(poly, doors) \
-            and not _door_by_campaigns(voting):
+            and not _door_verdict_stands(voting, poly):
         # the detection types an opening without a door's size a window whatever else it sees, and so does the
         # fusion (issue 18 round 13, dev seed 178: a glazed window 1.82 m tall that one campaign saw 2.2 m tall
         # and typed a door stayed a door after the refit cut it to 1.69 m)
@@ -773,12 +773,24 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
                    n_points=int(sum(m.n_points for m in members)), campaigns=campaigns)
 
 
-def _door_by_campaigns(voting: list[Element]) -> bool:
-    """Whether every shape voting on an opening's kind is a door, from two campaigns or more: then the door stays
-    a door when the refit makes it smaller than a door (issue 18 round 20, dev seed 273: a flush door two
-    campaigns measured 0.98 m wide became a 0.67 m window after a third saw the edge of its leaf as wall)."""
-    return bool(voting) and all(m.kind is ElementKind.DOOR for m in voting) \
-        and len({c for m in voting for c in m.campaigns}) >= 2
+def _door_verdict_stands(voting: list[Element], fused) -> bool:
+    """Whether a fused rectangle without a door's size stays a door: every shape voting on its kind is a door and
+    either two campaigns or more saw it (issue 18 round 20, dev seed 273: a flush door two campaigns measured
+    0.98 m wide became a 0.67 m window after a third saw the edge of its leaf as wall), or the refit made it no
+    smaller than one of them: the detection typed a door of that size for reasons the fusion does not see, such
+    as a side ending at cells a van hid (dev seed 272: a new door 0.63 m wide was stored a window)."""
+    if not voting or any(m.kind is not ElementKind.DOOR for m in voting):
+        return False
+    if len({c for m in voting for c in m.campaigns}) >= 2:
+        return True
+    w, h = _size(fused)
+    return any(w >= mw - 0.01 and h >= mh - 0.01 for mw, mh in map(_size, (m.polygon for m in voting)))
+
+
+def _size(polygon) -> tuple[float, float]:
+    """A rectangle's width (s) and height (t)."""
+    s0, t0, s1, t1 = polygon.bounds
+    return s1 - s0, t1 - t0
 
 
 def _door_sized(polygon, doors: OpeningParams) -> bool:
