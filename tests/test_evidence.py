@@ -736,6 +736,28 @@ def test_flush_door_with_noisy_leaf_returns_keeps_its_sides():
     assert iou >= 0.75 and kind is ElementKind.DOOR, (iou, kind)
 
 
+def test_flush_door_3_5_cm_back_keeps_its_sides_where_its_returns_fall_within_pass_depth(monkeypatch):
+    """Issue 18 round 21 (dev seeds 307 and 314): a flush door 3-4 cm back under 1 cm range noise. Half its leaf
+    returns lie within ``pass_depth`` (2 cm) of the wall, are no "behind" returns, and were taken for the last wall
+    samples before its sides: every side moved up to a cell inwards (``refine_inward_cells``), a door 2.10 m tall
+    measured 1.90 m and was typed a window. Cells whose returns lie on average more than ``leaf_offset`` back hold
+    no wall samples for the sides."""
+    import lidarmap.facade.observe as observe
+
+    def door_fit(cloud, traj, fps):
+        openings = _openings(extract_buildings(cloud, traj, fps, FacadeParams(), campaign_id=1, seed=0))
+        return _best(openings, lambda fr: _truth_rect(fr, *FLUSH_DOOR, y=WALL_Y))
+
+    scenes = [_flush_door_scene(depth=0.035, seed=seed) for seed in (0, 1)]
+    for scene in scenes:
+        iou, kind = door_fit(*scene)
+        assert iou >= 0.85 and kind is ElementKind.DOOR, (iou, kind)
+    # what it was without the rule: one door a window, the other cut 0.1 m on three sides
+    monkeypatch.setattr(observe, "_set_back_cells", lambda ev, params: None)
+    before = [door_fit(*scene) for scene in scenes]
+    assert before[0][1] is ElementKind.WINDOW and before[1][0] < 0.8, before
+
+
 def test_door_leaf_region_does_not_bleed_over_a_sparsely_sampled_wall():
     """Dev seed 25 building 2 (issue 18): a sparse campaign samples the wall in alternate rows, two returns per
     cell in one (a fifth of the cells' means lie 6 mm back by range noise), one in the next. Bridging every
