@@ -1128,3 +1128,31 @@ def test_a_door_two_campaigns_saw_stays_a_door_when_a_third_narrows_it_below_a_d
                         3 * (~grid.raster(narrow)).astype(int), sizes)
     assert [e.kind for e in fused] == [ElementKind.DOOR]
     assert _door_verdict_stands(only, narrow) and not _door_verdict_stands(only, box(1.5, 0.4, 2.0, 2.6))
+
+
+def test_new_strips_that_each_take_the_sides_of_one_unknown_region_are_stored_once(monkeypatch):
+    """Issue 18 round 21 (dev seed 327): campaign 3 saw a flush door half crossed, as strips side by side, inside
+    the unknown region campaign 1 had stored there. No strip matched a stored opening; each took the region's
+    sides (``_unknown_bounds``) and the façade held three identical windows. Fused openings that overlap an older
+    one by ``iou_threshold`` are one object: the oldest stays."""
+    import lidarmap.map.refine as refine
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    region = box(1.0, 0.2, 1.5, 2.7)
+    unknown = [Element(5, ElementKind.UNKNOWN, region, None, math.inf, campaigns=[1])]
+    strips = [box(1.0, 0.2, 1.2, 2.7), box(1.2, 0.3, 1.3, 2.6), box(1.3, 0.2, 1.5, 2.7)]
+    new = [Element(i, ElementKind.WINDOW, p, None, 0.05, campaigns=[3]) for i, p in enumerate(strips)]
+    new_w = 2 * grid.raster(region).astype(int)
+    votes = _Votes(grid, new_w, 3 * (~grid.raster(region)).astype(int), np.full(grid.shape, 2),
+                   np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=new_w)
+
+    def fused() -> list:
+        return _fuse_openings([], new, votes, _Ids(unknown + new), RefineParams(), (0.0, 4.0, 0.0, 4.0), unknown,
+                              0.45, OpeningParams())[0]
+
+    once = fused()
+    assert [(e.element_id, e.kind) for e in once] == [(6, ElementKind.WINDOW)], once
+    assert once[0].polygon.bounds == pytest.approx((1.0, 0.2, 1.5, 2.7))
+    monkeypatch.setattr(refine, "_one_per_object", lambda openings, params: openings)
+    assert len(fused()) == 3  # what the map stored before the rule
