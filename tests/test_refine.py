@@ -1068,6 +1068,34 @@ def test_a_stored_wall_leaves_the_first_metres_of_the_next_wall_round_the_corner
     assert (assign_to_facades([wall], xyz, footprint, dataclasses.replace(params, corner_margin=10.0)) == 0).all()
 
 
+def test_a_stored_plane_on_no_footprint_edge_leaves_the_wall_on_the_boundary_to_a_new_facade():
+    """Dev seed 347 (round 22): campaign 1 stored a plane 1.1 x 1.9 m on no footprint edge, 0.75 m behind the
+    street wall and square to it (a room's side wall seen through an open window). Campaign 3 was the first to see
+    that street wall; the stored plane took every point of it within corner_margin (0.5 m) of its own plane, at
+    every height, and the new façade had a column 1 m wide with no returns across three windows, which became
+    unknown regions. Such a plane has no recesses or balconies of a wall on that edge to keep: a point closer to
+    the footprint's boundary than to its plane is not its own."""
+    from lidarmap.facade.model import Facade, FacadeFrame
+    from lidarmap.map.refine import assign_to_facades
+
+    _, footprint = _corner_case()  # the street wall, not stored, runs along y = 0
+    # the room's side wall: the plane x = 5 (normal +x), from y = 0.5 to 1.6, inside the footprint
+    room = Facade(facade_id=2, frame=FacadeFrame(origin=np.array([5.0, 0.5, 7.8]), u=np.array([0.0, 1.0, 0.0])),
+                  sigma=0.02, extent=(0.0, 1.1, 0.0, 1.9), footprint_edge=None, campaigns=[1])
+    assert np.allclose(np.abs(room.frame.normal), [1, 0, 0])
+    x = np.linspace(4.6, 5.4, 17)
+    street = np.column_stack([x, np.full(17, 0.02), np.full(17, 4.0)])  # the street wall across that plane
+    own = np.array([[5.01, 1.0, 8.5], [4.98, 1.3, 9.0]])  # the room's side wall itself
+    xyz = np.vstack([street, own])
+    owner = assign_to_facades([room], xyz, footprint, RefineParams())
+    assert (owner[17:] == 0).all(), owner[17:]
+    near = np.abs(x - 5.0) < 0.02  # only points as close to its plane as to the boundary
+    assert (owner[:17][~near] == -1).all(), owner[:17]
+    # a plane on a footprint edge keeps the points within corner_margin (its recesses): the rule above still holds
+    on_edge = dataclasses.replace(room, footprint_edge=1)
+    assert (assign_to_facades([on_edge], xyz, footprint, RefineParams())[:17][np.abs(x - 5.0) < 0.45] == 0).all()
+
+
 def test_a_stored_wall_takes_no_points_past_its_footprint_corner():
     """Along the wall, new points belong to a stored façade up to extend_margin beyond its extent, but past the
     end of its footprint edge only up to corner_margin: beyond lie the next wall and the neighbours."""

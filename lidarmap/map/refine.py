@@ -108,7 +108,9 @@ class RefineParams:
             plane by more than this: it is on another wall of the building. Near a corner the first metres of a
             wall no campaign has stored yet lie within ``association_distance`` of the stored wall beside it; that
             wall used to take them, so the new façade stopped 2 m short of its end and lost the windows there.
-            The margin is what a footprint may be off from the wall (cadastre: a few dm).
+            The margin is what a footprint may be off from the wall (cadastre: a few dm). A façade on no footprint
+            edge gets no margin: a room's side wall seen through a window took a strip of the street wall square to
+            it, at every height, before a campaign had stored that wall (issue 18 round 22, dev seed 347).
         extend_min (0.2): the extent grows where the new main-layer points reach at least this far beyond it
             (a few cm of misregistration must not add a row of empty cells every campaign) ...
         extend_min_area (1.0): ... and cover at least this many m² of grid cells there (a few stray points of a
@@ -1553,7 +1555,11 @@ def assign_to_facades(facades: list[Facade], xyz: np.ndarray, polygon, params: R
         dist = np.abs(sdt[:, 2])
         ok = (dist <= params.association_distance) & (sdt[:, 0] >= lo) & (sdt[:, 0] <= hi) & (dist < best_d)
         if to_boundary is not None:
-            ok &= to_boundary >= dist - params.corner_margin
+            # a plane on no edge of the footprint (a room's side wall seen through an open window) has no recesses
+            # or balconies of the wall on that edge to keep: a point nearer the footprint's boundary lies on a wall
+            # there, maybe one no campaign has stored yet
+            margin = params.corner_margin if f.footprint_edge is not None else 0.0
+            ok &= to_boundary >= dist - margin
         best[ok] = k
         best_d[ok] = dist[ok]
     return best
