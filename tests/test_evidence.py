@@ -990,3 +990,40 @@ def test_occluders_between_a_wall_and_sensors_beyond_its_end_are_gathered():
     local = camp.xyz[around] - OFFSET
     post = (np.abs(local[:, 1] + 5.0) < 0.05) & (local[:, 0] > 25.9) & (local[:, 0] < 27.1) & (local[:, 2] > 0.2)
     assert post.sum() > 20, post.sum()
+
+
+def _returns_per_cell(f, cloud) -> np.ndarray:
+    """Returns within 0.1 m of a façade's plane per cell of its evidence grid."""
+    ev = f.evidence
+    sdt = f.frame.to_facade(cloud.xyz)
+    near = np.abs(sdt[:, 2]) <= 0.1
+    c = np.floor((sdt[near, 0] - ev.s0) / ev.cell).astype(int)
+    r = np.floor((sdt[near, 1] - ev.t0) / ev.cell).astype(int)
+    rows, cols = ev.object_votes.shape
+    ok = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
+    count = np.zeros((rows, cols), dtype=np.int64)
+    np.add.at(count, (r[ok], c[ok]), 1)
+    return count
+
+
+def test_a_wall_guessed_between_sparse_scan_lines_casts_no_wall_vote():
+    # issue 18 round 23: a campaign that sampled a wall sparsely (grazing incidence) filled the cells between its
+    # returns as wall; those guesses voted against the window a later campaign saw there
+    cloud, traj, fps = _grazing_scene()
+
+    def side_wall(params):
+        buildings = extract_buildings(cloud, traj, fps, params, campaign_id=1, seed=0)
+        return max((f for b in buildings for f in b.facades), key=lambda f: f.n_points)
+
+    new, old = side_wall(FacadeParams()), side_wall(FacadeParams().updated(fill_vote_max_radius=3))
+    assert new.extent == old.extent
+    returned = _returns_per_cell(new, cloud) > 0
+    guessed_old = int((old.evidence.object_votes[~returned] > 0).sum())
+    guessed_new = int((new.evidence.object_votes[~returned] > 0).sum())
+    assert guessed_old > 200, "the scene no longer has guessed wall cells to test"
+    assert guessed_new < 0.1 * guessed_old
+    # the cells with returns vote as before (a point on a cell's edge may fall in its neighbour here), and what
+    # the campaign saw is unchanged
+    changed = new.evidence.object_votes[returned] != old.evidence.object_votes[returned]
+    assert changed.sum() <= 0.01 * returned.sum()
+    assert np.array_equal(new.evidence.seen, old.evidence.seen)

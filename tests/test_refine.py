@@ -317,13 +317,40 @@ def test_a_campaign_sparser_than_the_gate_but_denser_than_the_stored_facade_adds
     """Dev seed 122 (issue 18): campaign 1 sampled side walls at 10-15 points/m² and built their openings from
     that; campaign 2 sampled them at 16-20 /m², under ``min_element_density``, and was left out, so the windows
     only it saw stayed missing. A campaign at least as dense as the façade's own campaigns adds its
-    elements; over a densely sampled façade the gate still keeps a sparse campaign's elements out."""
+    elements. Over a densely sampled façade the gate keeps a sparse campaign's elements out except on the cells no
+    earlier campaign saw (round 23): the window the van hid from the dense campaign is found all the same."""
     sparse, second, before, after = _hidden_window_found(0.3, 1.5)
     assert sparse < second < RefineParams().min_element_density, (sparse, second)
     assert not before and after
     dense, second, before, after = _hidden_window_found(0.05, 0.2)
     assert second < RefineParams().min_element_density < dense, (dense, second)
-    assert not before and not after
+    assert not before and after
+
+
+def test_a_sparse_campaign_leaves_what_a_denser_one_saw_and_adds_what_only_it_saw():
+    """Issue 18 round 23, dev seed 352: a campaign under the density gate saw a ground floor two campaigns could
+    not see and nothing of it was stored. Now its votes and elements count on the cells no earlier campaign saw,
+    and nowhere else."""
+    from lidarmap.map.refine import pad_evidence
+
+    first = make_scene(step=0.05, angle_step_deg=0.2)
+    second = make_scene(van=False, step=0.25, angle_step_deg=1.2, seed=5)
+    m1 = refine_map(BuildingMap(crs_wkt=CRS_UTM.to_wkt()), *first[:3], FacadeParams(), RefineParams(), campaign_id=1)
+    m2 = refine_map(m1, *second[:3], FacadeParams(), RefineParams(), campaign_id=2)
+    f1, f2 = m1.buildings["B1"].facades[0], m2.buildings["B1"].facades[0]
+    old = pad_evidence(f1.evidence, f2.extent, f1.evidence.cell)
+    seen_before = old.seen > 0
+    for name in ("window_votes", "object_votes", "seen"):
+        added = getattr(f2.evidence, name) - getattr(old, name)
+        assert not added[seen_before].any(), name  # not a vote where the dense campaign saw
+    assert (f2.evidence.seen - old.seen)[~seen_before].sum() > 100  # its own word on the van's shadow
+    o1, o2 = _openings(f1), _openings(f2)
+    for i, e in o1.items():  # the dense campaign's openings as they were
+        assert o2[i].polygon.equals(e.polygon) and o2[i].campaigns == e.campaigns and o2[i].kind is e.kind
+    hidden = _facade_rect(f2.frame, first[3]["hidden_windows"][0])
+    found = [e for e in o2.values() if polygon_iou(e.polygon, hidden) > 0.8]
+    assert len(found) == 1 and found[0].campaigns == [2] and found[0].kind is ElementKind.WINDOW
+    assert len(o2) == len(o1) + 1
 
 
 def test_a_later_campaign_off_the_stored_plane_by_gps_drift_still_adds_the_window_only_it_saw():

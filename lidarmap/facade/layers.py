@@ -221,20 +221,27 @@ def grow_regions(mask: np.ndarray, close_cells: int, min_cells: int,
     return remap[labels], int(keep.sum())
 
 
-def close_sampling_gaps(count: np.ndarray, cell: float, min_close: int, max_close: int,
-                        window: float = 1.0) -> np.ndarray:
-    """Observed cells with sampling gaps closed: a cell is observed when it holds points, or when a closing of
-    radius r fills it, r = local point spacing / cell (spacing from the point density over a ``window`` metre
-    neighbourhood), clipped to [``min_close``, ``max_close``]. Square structuring elements keep rectangular holes
-    larger than the element exactly as they are."""
-    observed = count > 0
-    if max_close <= 0 or not observed.any():
-        return observed
+def closing_radius(count: np.ndarray, cell: float, min_close: int, max_close: int, window: float = 1.0) -> np.ndarray:
+    """Per cell, the radius (cells) of the closing :func:`close_sampling_gaps` applies there: the local point
+    spacing / cell (spacing from the point density over a ``window`` metre neighbourhood), clipped to
+    [``min_close``, ``max_close``]."""
     k = max(1, int(round(window / cell)))
     density = np.maximum(ndimage.uniform_filter(count.astype(np.float64), size=k, mode="constant"), 0.0) / (cell * cell)
     with np.errstate(divide="ignore"):
         spacing = np.where(density > 1e-9, 1.0 / np.sqrt(np.maximum(density, 1e-9)), np.inf)
-    radius = np.clip(np.round(spacing / cell), min_close, max_close)
+    return np.clip(np.round(spacing / cell), min_close, max_close).astype(np.int64)
+
+
+def close_sampling_gaps(count: np.ndarray, cell: float, min_close: int, max_close: int,
+                        window: float = 1.0, radius: np.ndarray | None = None) -> np.ndarray:
+    """Observed cells with sampling gaps closed: a cell is observed when it holds points, or when a closing of
+    radius r fills it, r = :func:`closing_radius` (or ``radius``, when the caller has it). Square structuring
+    elements keep rectangular holes larger than the element exactly as they are."""
+    observed = count > 0
+    if max_close <= 0 or not observed.any():
+        return observed
+    if radius is None:
+        radius = closing_radius(count, cell, min_close, max_close, window)
     out = observed.copy()
     for r in range(max(1, min_close), max_close + 1):
         sel = radius == r

@@ -47,6 +47,7 @@ from lidarmap.facade.layers import (
     assign_layers,
     cell_index,
     close_sampling_gaps,
+    closing_radius,
     depth_grid,
     fit_layers,
     grid_shape,
@@ -290,6 +291,7 @@ class _Surface:
     dominant: np.ndarray | None = None  # (rows, cols) the layer seen in each cell, -1 none
     observed_raw: np.ndarray | None = None  # cells holding a point
     observed: np.ndarray | None = None  # the same with sampling gaps closed
+    close_radius: np.ndarray | None = None  # the closing radius (cells) per cell: the local point spacing / cell
     gps: np.ndarray | None = None  # (n,) the points' GPS times (tell crossed scanner heads apart)
 
     @property
@@ -362,7 +364,9 @@ def _surface_grid(surf: _Surface, params: FacadeParams) -> bool:
     fallback = np.where(count.ravel() > 0, np.argmax(per_layer, axis=0), -1)
     surf.dominant = np.where(present.any(axis=0), front_most, fallback).reshape(shape)
     surf.observed_raw = count > 0
-    surf.observed = close_sampling_gaps(count, surf.cell, params.objects.close_cells, params.objects.max_close_cells)
+    surf.close_radius = closing_radius(count, surf.cell, params.objects.close_cells, params.objects.max_close_cells)
+    surf.observed = close_sampling_gaps(count, surf.cell, params.objects.close_cells, params.objects.max_close_cells,
+                                        radius=surf.close_radius)
     return True
 
 
@@ -400,6 +404,7 @@ class _Visibility:
     leaves: np.ndarray | None = None  # cells of door leaves nearly flush with the wall (their returns are no wall)
     behind: np.ndarray | None = None  # per point of the surface: more than pass_depth behind the local wall
     set_back: np.ndarray | None = None  # cells whose returns lie on average a leaf's offset behind the wall
+    guessed: np.ndarray | None = None  # observed cells without a return that a coarse closing filled: no wall vote
 
 
 def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens: np.ndarray, around: np.ndarray,
@@ -486,6 +491,8 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
         hidden = hidden | unsampled
     values = value_grid(observed, hidden, passed)
     weights = vote_weights(ev, occluded, params)
+    returned = raw | ((ev.front > 0) if ray and ev.front is not None else False)
+    guessed = observed & ~returned & (surf.close_radius > params.evidence.fill_vote_max_radius)
     opaque = None
     if ray:
         opaque = recessed_share(ev)
@@ -494,7 +501,7 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
         opaque[leaves] = 1.0  # a leaf returns every pulse, a few on the wall's side of pass_depth
     return _Visibility(values=values, ground_t=ground_t, below=below, unsampled=unsampled, weights=weights,
                        opaque=opaque, leaves=leaves, behind=behind_pts if ray else None,
-                       set_back=_set_back_cells(ev, params) if ray else None)
+                       set_back=_set_back_cells(ev, params) if ray else None, guessed=guessed)
 
 
 def _set_back_cells(ev: CellEvidence, params: FacadeParams) -> np.ndarray | None:
@@ -653,7 +660,9 @@ def _observation(frame: FacadeFrame, surf: _Surface, vis: _Visibility, found: _E
     """Step "evidence": the evidence grids and the façade record of the observation."""
     s0, s1, t0, t1 = surf.extent
     seen = (vis.values != OCCLUDED).astype(np.int32)
-    object_votes = np.where((vis.values == OBJECT) & ~found.door_cells, vis.weights, 0).astype(np.int32)
+    # a wall the campaign only guessed between sparse scan lines is no vote against another campaign's opening
+    voting = (vis.values == OBJECT) & ~found.door_cells & ~vis.guessed
+    object_votes = np.where(voting, vis.weights, 0).astype(np.int32)
     edge = match_footprint_edge(frame, (s0, s1), polygon, params)[0] if polygon is not None else None
     items, window_votes = found.items, found.window_votes
     if polygon is not None and edge is None and params.planes.openings_need_edge:

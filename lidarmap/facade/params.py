@@ -477,6 +477,12 @@ class EvidenceParams:
     weight_pulses (2.0): a campaign's vote on a cell weighs 1 + floor(pulses x cos(incidence) / weight_pulses),
         at most 4 ...
     weight_occlusion_cells (2): ... halved (at least 1) within this many cells of an occluded cell.
+    fill_vote_max_radius (1): a cell without a return of its own that the sampling-gap closing marked observed
+        (``objects.close_cells``) votes wall in the map only where the closing radius there (local point spacing /
+        cell) is at most this. Between a sparse campaign's scan lines (grazing incidence, distance) the wall is a
+        guess, not evidence against a window a later campaign sees (issue 18 round 23, dev seed 334: a wall seen at
+        80° with 1-4 returns per row of cells voted wall over 43 % of a window that campaign never saw, and the
+        window the third campaign found was not stored). A cell of the campaign's own observation stays observed.
     """
 
     constraints: ClassVar[dict[str, str]] = {
@@ -497,6 +503,7 @@ class EvidenceParams:
         "leaf_band": "> 0",
         "weight_pulses": "> 0",
         "weight_occlusion_cells": ">= 0",
+        "fill_vote_max_radius": ">= 0",
     }
 
     ray_evidence: bool = True
@@ -518,6 +525,7 @@ class EvidenceParams:
     leaf_band: float = 0.08
     weight_pulses: float = 2.0
     weight_occlusion_cells: int = 2
+    fill_vote_max_radius: int = 1
 
     def __post_init__(self) -> None:
         check_params(self)
