@@ -527,6 +527,29 @@ def test_door_typing_by_size_ground_line_and_leaf():
 
 
 
+def test_a_window_verdict_for_want_of_leaf_evidence_is_undecided():
+    """Issue 18 round 24 (dev seed 358): a door-sized opening 0.6 m above the ground line is a door when a leaf
+    closes it and a window when the pulses cross it; with no pulse through its core (seen at a grazing angle)
+    nothing says which, so the window verdict is undecided. Above ``door_leaf_tol`` (1.1 m), or without a
+    door's size, a window is a window whatever the pulses say."""
+    from lidarmap.facade.openings import door_or_window_verdict
+
+    params = FacadeParams()
+    mask = np.ones((23, 10), dtype=bool)
+    shut, glazed, unmeasured = np.ones(mask.shape), np.full(mask.shape, 0.3), np.full(mask.shape, np.nan)
+    lifted = (0.0, 1.0, 0.6, 2.9)  # 1.0 m x 2.3 m, 0.6 m above the ground line at 0.0
+    assert door_or_window_verdict(lifted, 0.0, mask, shut, params) == (ElementKind.DOOR, False)
+    assert door_or_window_verdict(lifted, 0.0, mask, glazed, params) == (ElementKind.WINDOW, False)
+    assert door_or_window_verdict(lifted, 0.0, mask, unmeasured, params) == (ElementKind.WINDOW, True)
+    assert door_or_window_verdict(lifted, 0.0, mask, None, params) == (ElementKind.WINDOW, True)
+    high = (0.0, 1.0, 1.3, 3.6)  # the same opening 1.3 m up: beyond any leaf's steps
+    assert door_or_window_verdict(high, 0.0, mask, None, params) == (ElementKind.WINDOW, False)
+    short = (0.0, 1.0, 0.6, 2.2)  # 1.6 m tall: no door's size
+    assert door_or_window_verdict(short, 0.0, mask, None, params) == (ElementKind.WINDOW, False)
+    on_ground = (0.0, 1.0, 0.1, 2.4)
+    assert door_or_window_verdict(on_ground, 0.0, mask, None, params) == (ElementKind.DOOR, False)
+
+
 def test_a_narrow_door_whose_side_ends_in_an_occluded_strip_is_a_door():
     """Issue 18 round 20 (dev seed 272): a van hid the left part of a door; the campaign saw 0.64 m of it, a
     column of frame, then the van's shadow, and typed it a window (narrower than ``door_min_width``). A side that

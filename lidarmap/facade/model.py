@@ -97,6 +97,9 @@ class Element:
     uncertainty: float
     n_points: int = 0
     campaigns: list[int] = dataclasses.field(default_factory=list)
+    # an observation's window typed so only for want of leaf evidence (openings.door_or_window_verdict); the
+    # fusion reads it on the new campaign's shapes only, and the store does not keep it
+    kind_undecided: bool = False
 
     @property
     def is_unknown(self) -> bool:

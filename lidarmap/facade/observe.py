@@ -523,9 +523,10 @@ class _Elements:
         self.window_votes = np.zeros(shape, dtype=np.int32)
         self.door_cells = np.zeros(shape, dtype=bool)  # recessed doors/windows: openings with a surface
 
-    def add(self, kind: ElementKind, poly, layer_id, unc: float, n: int = 0) -> None:
+    def add(self, kind: ElementKind, poly, layer_id, unc: float, n: int = 0, undecided: bool = False) -> None:
         self.items.append(Element(element_id=len(self.items), kind=kind, polygon=poly, layer_id=layer_id,
-                                  uncertainty=float(unc), n_points=int(n), campaigns=[self.campaign_id]))
+                                  uncertainty=float(unc), n_points=int(n), campaigns=[self.campaign_id],
+                                  kind_undecided=undecided))
 
 
 def _recessed_kind(cmask: np.ndarray, depths: np.ndarray, vis: _Visibility, surf: _Surface,
@@ -641,7 +642,7 @@ def _hole_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: F
         if op.kind in (ElementKind.WINDOW, ElementKind.DOOR) and op.bounds is not None:
             b_s0, b_s1, b_t0, b_t1 = op.bounds
             found.add(op.kind, box(max(b_s0, s0), max(b_t0, t0), min(b_s1, s1), min(b_t1, t1)), None,
-                      op.uncertainty)
+                      op.uncertainty, undecided=op.kind_undecided)
             found.window_votes[op.mask] = vis.weights[op.mask]
             continue
         if op.window_evidence:

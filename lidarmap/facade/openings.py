@@ -153,6 +153,7 @@ class Opening:
     n_cells: int
     region: np.ndarray | None = None
     bounds: tuple[float, float, float, float] | None = None  # s_lo, s_hi, t_lo, t_hi (metres) of the rectangle
+    kind_undecided: bool = False  # a window only for want of leaf evidence (door_or_window_verdict)
 
     @property
     def window_evidence(self) -> bool:
@@ -323,13 +324,14 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
             unknown.rect = seen_rect if hidden else None
             out.append(unknown)
             continue
-        kind = door_or_window(bounds, float(np.mean(ground[rect[2]:rect[3]])), mask, opaque, params,
-                              width_cut=side_hidden(work, rect, params))
+        kind, undecided = door_or_window_verdict(bounds, float(np.mean(ground[rect[2]:rect[3]])), mask, opaque,
+                                                 params, width_cut=side_hidden(work, rect, params))
         if cut is not None:  # wall closes it below: no door, whatever the ground line of a wall seen this little
-            kind = ElementKind.WINDOW
+            kind, undecided = ElementKind.WINDOW, False
         if low is not None:
             eps = window_uncertainty_eq3(local, rect)  # the occluded rows it now covers count
-        out.append(Opening(kind, mask, rect, eps, fill, occ_border, n_cells, region, bounds))
+        out.append(Opening(kind, mask, rect, eps, fill, occ_border, n_cells, region, bounds,
+                           kind_undecided=undecided))
     below_floor_level(out, ground, params)
     return out
 
@@ -491,20 +493,40 @@ def door_or_window(bounds: tuple[float, float, float, float], ground: float, mas
     window. ``width_cut``: a side of the opening ends at cells the campaign could not see
     (:func:`side_hidden`), so its width is a lower bound and no minimum width applies (issue 18 round 20, dev seed
     272: a door whose left part a van hid measured 0.64 m wide and was stored as a window)."""
+    return door_or_window_verdict(bounds, ground, mask, opaque, params, width_cut)[0]
+
+
+def door_or_window_verdict(bounds: tuple[float, float, float, float], ground: float, mask: np.ndarray,
+                           opaque: np.ndarray | None, params: FacadeParams,
+                           width_cut: bool = False) -> tuple[ElementKind, bool]:
+    """:func:`door_or_window` and whether its verdict is *undecided*: a window of a door's size that starts above
+    ``door_bottom_tol`` but within ``door_leaf_tol`` of the ground line, with no pulse through its core, is a
+    window only because nothing said whether a leaf closes it. Another campaign that measured the leaf may
+    settle it (issue 18 round 24, dev seed 358: a door 0.59 m above the ground line, found a door by campaign 1,
+    seen by campaign 3 without a passing pulse and retyped a window)."""
     op = params.openings
     width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
     if not op.door_sized(max(width, op.door_min_width) if width_cut else width, height):
-        return ElementKind.WINDOW
-    # a leaf closes the whole opening; the reveals of an open window catch pulses along its border only
-    core = ndimage.binary_erosion(mask, structure=np.ones((5, 5), dtype=bool))
-    core = core if core.sum() >= 0.25 * mask.sum() else mask
-    share = opaque[core] if opaque is not None else np.zeros(0)
-    share = share[np.isfinite(share)]
+        return ElementKind.WINDOW, False
+    share = _leaf_share(mask, opaque)
     leaf = len(share) > 0 and float(share.mean()) >= params.evidence.opaque_share
     if width > op.open_door_max_width and len(share) > 0 and not leaf:
-        return ElementKind.WINDOW  # wider than a door leaf and the pulses cross it: a glazed shop front
+        return ElementKind.WINDOW, False  # wider than a door leaf and the pulses cross it: a glazed shop front
     tol = op.door_leaf_tol if leaf else op.door_bottom_tol
-    return ElementKind.DOOR if bounds[2] <= ground + tol else ElementKind.WINDOW
+    if bounds[2] <= ground + tol:
+        return ElementKind.DOOR, False
+    return ElementKind.WINDOW, len(share) == 0 and bounds[2] <= ground + op.door_leaf_tol
+
+
+def _leaf_share(mask: np.ndarray, opaque: np.ndarray | None) -> np.ndarray:
+    """The opaque share (``opaque``) of an opening's core cells with passing pulses: a leaf closes the whole
+    opening, the reveals of an open window catch pulses along its border only."""
+    if opaque is None:
+        return np.zeros(0)
+    core = ndimage.binary_erosion(mask, structure=np.ones((5, 5), dtype=bool))
+    core = core if core.sum() >= 0.25 * mask.sum() else mask
+    share = opaque[core]
+    return share[np.isfinite(share)]
 
 
 def complete_by_repetition(openings: list[Opening], values: np.ndarray, s0: float, t0: float, cell: float,

@@ -152,6 +152,9 @@ class RefineParams:
             windows never overlap).
         contain_fraction (0.6): an element with at least this share of its area inside another of the same class
             is a piece of it (a window split by an old occlusion) and merges into it.
+        piece_aligned_share (0.8): two windows/doors that overlap and whose extents along s (or along t) share at
+            least this fraction of the longer one are pieces of one opening: the top of a window one campaign saw
+            above a car and the rest another saw below (neighbouring windows never overlap).
         line_offsets (1): each shape's edges give candidate lines at this many cells either side for the
             vote-map rectangle refit.
         max_window_uncertainty (0.5): a window/door merged from matched shapes whose weighted eq. (3) ε exceeds
@@ -206,6 +209,7 @@ class RefineParams:
         "layer_gate_min": ">= 0",
         "iou_threshold": ">= 0",
         "contain_fraction": ">= 0",
+        "piece_aligned_share": "(0, 1]",
         "line_offsets": ">= 0",
         "max_window_uncertainty": ">= 0",
         "enclosed_wall_share": ">= 0",
@@ -239,6 +243,7 @@ class RefineParams:
     layer_gate_min: float = 0.04
     iou_threshold: float = 0.3
     contain_fraction: float = 0.6
+    piece_aligned_share: float = 0.8
     line_offsets: int = 1
     max_window_uncertainty: float = 0.5
     enclosed_wall_share: float = 0.5
@@ -263,7 +268,8 @@ class RefineParams:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0")
-        for name in ("iou_threshold", "contain_fraction", "seen_fraction", "structure_vote", "enclosed_wall_share"):
+        for name in ("iou_threshold", "contain_fraction", "seen_fraction", "structure_vote", "enclosed_wall_share",
+                     "piece_aligned_share"):
             if not 0.0 < getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in (0, 1]")
         if self.wall_retry_inits < 1:
@@ -565,9 +571,11 @@ def _weight(e: Element) -> int:
     return max(1, len(e.campaigns))
 
 
-def _iou_pairs(a: list, b: list, same: np.ndarray, params: RefineParams) -> list[tuple[float, int, int]]:
+def _iou_pairs(a: list, b: list, same: np.ndarray, params: RefineParams,
+               aligned: bool = False) -> list[tuple[float, int, int]]:
     """(score, i, j) for polygons a[i], b[j] of the same class (``same[i, j]``) that are one object: IoU >=
-    ``iou_threshold``, or one lies ``contain_fraction`` inside the other. Score = IoU (pieces: their share)."""
+    ``iou_threshold``, or one lies ``contain_fraction`` inside the other, or (``aligned``) they overlap and are
+    aligned pieces (:func:`_aligned_pieces`). Score = IoU."""
     if not a or not b:
         return []
     ga, gb = np.array(a, dtype=object), np.array(b, dtype=object)
@@ -583,13 +591,26 @@ def _iou_pairs(a: list, b: list, same: np.ndarray, params: RefineParams) -> list
     iou = np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
     piece = inter / np.maximum(np.minimum(area_a, area_b), 1e-12)
     ok = (iou >= params.iou_threshold) | (piece >= params.contain_fraction)
+    if aligned:
+        ok |= (inter > 0) & _aligned_pieces(ba[ii], bb[jj], params.piece_aligned_share)
     return [(float(max(iou[k], 0.0)), int(ii[k]), int(jj[k])) for k in np.flatnonzero(ok)]
 
 
-def _clusters(old: list[Element], new: list[Element], key, params: RefineParams) -> list[tuple[list[int], list[int]]]:
+def _aligned_pieces(ba: np.ndarray, bb: np.ndarray, share: float) -> np.ndarray:
+    """Per row of bounds (minx, miny, maxx, maxy) pairs: whether their extents along s, or along t, overlap by at
+    least ``share`` of the longer one (one window seen in two parts, stacked or side by side)."""
+    def along(lo: int, hi: int) -> np.ndarray:
+        common = np.minimum(ba[:, hi], bb[:, hi]) - np.maximum(ba[:, lo], bb[:, lo])
+        longer = np.maximum(ba[:, hi] - ba[:, lo], bb[:, hi] - bb[:, lo])
+        return common >= share * np.maximum(longer, 1e-12)
+    return along(0, 2) | along(1, 3)
+
+
+def _clusters(old: list[Element], new: list[Element], key, params: RefineParams,
+              aligned: bool = False) -> list[tuple[list[int], list[int]]]:
     """Groups (old indices, new indices) of elements that are one object (connected by :func:`_iou_pairs`)."""
     same = np.array([[key(o) == key(n) for n in new] for o in old], dtype=bool).reshape(len(old), len(new))
-    pairs = _iou_pairs([e.polygon for e in old], [e.polygon for e in new], same, params)
+    pairs = _iou_pairs([e.polygon for e in old], [e.polygon for e in new], same, params, aligned)
     parent = list(range(len(old) + len(new)))
 
     def find(x: int) -> int:
@@ -764,7 +785,7 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     # the kind of the fused rectangle goes by the evidence each shape holds over it: the part of a shape the refit
     # rejected (a door shape twice the window's width, its other half wall) has no say in what the opening is
     evidence_over = _member_weights(members, n_old, votes, g.raster(poly))
-    voters = _kind_voters(members, poly, doors)
+    voters = _kind_voters(members, poly, doors, n_old)
     voting = [m for m, v in zip(members, voters) if v]
     votes_on_kind = [(m.kind, w) for m, w, v in zip(members, evidence_over, voters) if v]
     kind = weighted_kind([k for k, _ in votes_on_kind], [w for _, w in votes_on_kind], keeper.kind)
@@ -808,23 +829,26 @@ def _door_sized(polygon, doors: OpeningParams) -> bool:
     return doors.door_sized(s1 - s0, t1 - t0, 1e-9)
 
 
-def _kind_voters(members: list[Element], fused, doors: OpeningParams | None) -> list[bool]:
-    """Which matched shapes vote on the kind of the fused rectangle ``fused``. A shape typed window whose own
-    rectangle has no door's size was a window by its size alone (the detection types such shapes windows before
-    it looks at the ground): once the fused rectangle has a door's size and another shape saw a door there, that
-    verdict no longer applies and it does not vote (issue 18 round 7, dev seed 104: a flush door 2.03 m tall
-    that one campaign measured 1.94 m, 1 cm below ``door_min_height``, became a window). Likewise a window wider
-    than ``open_door_max_width`` may be a window by its width alone (the detection types an opening that wide a
-    window unless a leaf closes it): it does not vote on a fused rectangle no wider than that (issue 18 round 17,
-    dev seeds 175 and 225: doors 1.46-1.47 m wide that an earlier campaign measured 1.85-1.94 m wide stayed
-    windows against the door a later campaign saw)."""
+def _kind_voters(members: list[Element], fused, doors: OpeningParams | None, n_old: int = 0) -> list[bool]:
+    """Which matched shapes vote on the kind of the fused rectangle ``fused`` (the first ``n_old`` members are
+    stored shapes). A shape typed window whose own rectangle has no door's size was a window by its size alone
+    (the detection types such shapes windows before it looks at the ground): once the fused rectangle has a
+    door's size and another shape saw a door there, that verdict no longer applies and it does not vote (issue 18
+    round 7, dev seed 104: a flush door 2.03 m tall that one campaign measured 1.94 m, 1 cm below
+    ``door_min_height``, became a window). Likewise a window wider than ``open_door_max_width`` may be a window by
+    its width alone (the detection types an opening that wide a window unless a leaf closes it): it does not vote
+    on a fused rectangle no wider than that (issue 18 round 17, dev seeds 175 and 225: doors 1.46-1.47 m wide that
+    an earlier campaign measured 1.85-1.94 m wide stayed windows against the door a later campaign saw). And a
+    new shape the detection left undecided (``Element.kind_undecided``: a window for want of leaf evidence) does
+    not vote against a door either (issue 18 round 24, dev seed 358); stored shapes carry no such flag."""
     if doors is None or not _door_sized(fused, doors) \
             or not any(m.kind is ElementKind.DOOR for m in members):
         return [True] * len(members)
     narrow = _width(fused) <= doors.open_door_max_width + 1e-9
     return [m.kind is not ElementKind.WINDOW
-            or (_door_sized(m.polygon, doors) and not (narrow and _width(m.polygon) > doors.open_door_max_width))
-            for m in members]
+            or (_door_sized(m.polygon, doors) and not (narrow and _width(m.polygon) > doors.open_door_max_width)
+                and not (k >= n_old and m.kind_undecided))
+            for k, m in enumerate(members)]
 
 
 def _width(polygon) -> float:
@@ -1079,7 +1103,9 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
     stayed 0.5 m tall)."""
     out: list[Element] = []
     changed: set[int] = set()
-    groups = [part for oi, ni in _clusters(old, new, lambda e: "opening", params)
+    # a stored piece and a new piece of one window (its top seen above a car, the rest below by another campaign)
+    # overlap little but line up: one object (issue 18 round 24, dev seed 365: two windows stored, one false)
+    groups = [part for oi, ni in _clusters(old, new, lambda e: "opening", params, aligned=True)
               for part in _split_bridged([old[i] for i in oi], [new[j] for j in ni], votes)]
     stored_at = _stored_index(old, votes.grid) if any(o and n for o, n in groups) else None
     for olds, news in groups:
@@ -1527,9 +1553,12 @@ def refine_facade(stored: Facade, camp: CampaignData, member_ids: np.ndarray, po
 
 
 def _on_unseen_cells(obs: Facade, old_ev: FacadeEvidence) -> Facade | None:
-    """A sparse observation cut to the cells no earlier campaign saw (``old_ev.seen`` == 0, on the observation's
-    grid): its votes there, and its elements lying mostly there. ``None`` when it saw none of them."""
-    fresh = old_ev.seen == 0
+    """A sparse observation cut to the cells no earlier campaign saw or voted on (``old_ev.seen`` == 0, or no window
+    and no wall vote: a wall guessed between sparse scan lines counts as seen but casts no vote, on the
+    observation's grid): its votes there, and its elements lying mostly there. ``None`` when it saw none of them.
+    Issue 18 round 24, dev seed 352: two campaigns had "seen" two thirds of a door at a grazing angle without one
+    vote on it; the third saw the door whole, and the door was dropped with the rest of its evidence."""
+    fresh = (old_ev.seen == 0) | ((old_ev.window_votes == 0) & (old_ev.object_votes == 0))
     ev = obs.evidence
     if not (fresh & (ev.seen > 0)).any():
         return None
