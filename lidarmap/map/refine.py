@@ -155,6 +155,9 @@ class RefineParams:
         piece_aligned_share (0.8): two windows/doors that overlap and whose extents along s (or along t) share at
             least this fraction of the longer one are pieces of one opening: the top of a window one campaign saw
             above a car and the rest another saw below (neighbouring windows never overlap).
+        piece_overlap_fraction (0.25): ... and two windows/doors of which one lies at least this share of its area
+            inside the other are pieces of one opening too: the top of a window one campaign measured wider than
+            another (neighbouring windows never overlap; ``contain_fraction`` is for all elements).
         line_offsets (1): each shape's edges give candidate lines at this many cells either side for the
             vote-map rectangle refit.
         max_window_uncertainty (0.5): a window/door merged from matched shapes whose weighted eq. (3) ε exceeds
@@ -168,7 +171,9 @@ class RefineParams:
             part: cells no campaign voted on) reaches across such cells by at most this many metres to the wall
             that encloses it; 0 switches the growth off.
         seen_fraction (0.5): a stored window is re-scored only when the new campaign saw at least this share of its
-            cells; otherwise it is left exactly as stored.
+            cells; otherwise it is left exactly as stored. Likewise a stored window one campaign saw is split over
+            two new shapes by the new campaign's wall votes on the strip between them only when it saw this share
+            of the strip (``_split_bridged``).
         refit_keep_share (0.5): a re-scored stored window/door whose refitted rectangle keeps less than this share
             of its opening evidence keeps its stored rectangle: such a refit found the patch the new campaign did
             not read as wall (a strip of a door leaf), not the opening's sides.
@@ -210,6 +215,7 @@ class RefineParams:
         "iou_threshold": ">= 0",
         "contain_fraction": ">= 0",
         "piece_aligned_share": "(0, 1]",
+        "piece_overlap_fraction": "(0, 1]",
         "line_offsets": ">= 0",
         "max_window_uncertainty": ">= 0",
         "enclosed_wall_share": ">= 0",
@@ -244,6 +250,7 @@ class RefineParams:
     iou_threshold: float = 0.3
     contain_fraction: float = 0.6
     piece_aligned_share: float = 0.8
+    piece_overlap_fraction: float = 0.25
     line_offsets: int = 1
     max_window_uncertainty: float = 0.5
     enclosed_wall_share: float = 0.5
@@ -269,7 +276,7 @@ class RefineParams:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0")
         for name in ("iou_threshold", "contain_fraction", "seen_fraction", "structure_vote", "enclosed_wall_share",
-                     "piece_aligned_share"):
+                     "piece_aligned_share", "piece_overlap_fraction"):
             if not 0.0 < getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in (0, 1]")
         if self.wall_retry_inits < 1:
@@ -574,8 +581,9 @@ def _weight(e: Element) -> int:
 def _iou_pairs(a: list, b: list, same: np.ndarray, params: RefineParams,
                aligned: bool = False) -> list[tuple[float, int, int]]:
     """(score, i, j) for polygons a[i], b[j] of the same class (``same[i, j]``) that are one object: IoU >=
-    ``iou_threshold``, or one lies ``contain_fraction`` inside the other, or (``aligned``) they overlap and are
-    aligned pieces (:func:`_aligned_pieces`). Score = IoU."""
+    ``iou_threshold``, or one lies ``contain_fraction`` inside the other, or (``aligned``: windows and doors) they
+    overlap and are aligned pieces (:func:`_aligned_pieces`) or one lies ``piece_overlap_fraction`` inside the
+    other. Score = IoU."""
     if not a or not b:
         return []
     ga, gb = np.array(a, dtype=object), np.array(b, dtype=object)
@@ -592,7 +600,8 @@ def _iou_pairs(a: list, b: list, same: np.ndarray, params: RefineParams,
     piece = inter / np.maximum(np.minimum(area_a, area_b), 1e-12)
     ok = (iou >= params.iou_threshold) | (piece >= params.contain_fraction)
     if aligned:
-        ok |= (inter > 0) & _aligned_pieces(ba[ii], bb[jj], params.piece_aligned_share)
+        ok |= (inter > 0) & (_aligned_pieces(ba[ii], bb[jj], params.piece_aligned_share)
+                             | (piece >= params.piece_overlap_fraction))
     return [(float(max(iou[k], 0.0)), int(ii[k]), int(jj[k])) for k in np.flatnonzero(ok)]
 
 
@@ -1012,17 +1021,24 @@ def _band_between(a, b):
     return None
 
 
-def _separated_by_wall(a: Element, b: Element, votes: _Votes) -> bool:
-    """Whether two stored openings are two objects by the fused votes: the strip between them holds more wall than
+def _separated_by_wall(a: Element, b: Element, votes: _Votes, new_view: float | None = None) -> bool:
+    """Whether two openings are two objects by the fused votes: the strip between them holds more wall than
     opening evidence (diagonal neighbours are always two). Overlapping ones, or a strip of no cells or no wall
-    weight (a pole hid it), are one object."""
+    weight (a pole hid it), are one object. ``new_view`` (a share): ``a`` and ``b`` are the new campaign's shapes
+    over an opening one earlier campaign stored; they are two also when the new campaign saw this share of the
+    strip, cast wall votes on it and not one window vote: a view of the pier against one view that missed it."""
     if a.polygon.intersects(b.polygon):
         return False
     band = _band_between(a.polygon, b.polygon)
     if band is None:
         return True
     cells = votes.grid.raster(band)
-    return bool(cells.any()) and outweighed_by_wall(votes.window, votes.objects, cells)
+    if not cells.any():
+        return False
+    if outweighed_by_wall(votes.window, votes.objects, cells):
+        return True
+    return new_view is not None and votes.window_new is not None and not votes.window_new[cells].any() \
+        and bool(votes.objects[cells].any()) and votes.seen_new[cells].astype(bool).mean() >= new_view
 
 
 def _clip_to(e: Element, region) -> Element | None:
@@ -1034,29 +1050,50 @@ def _clip_to(e: Element, region) -> Element | None:
     return dataclasses.replace(e, polygon=piece, n_points=int(round(e.n_points * piece.area / e.polygon.area)))
 
 
-def _split_bridged(olds: list[Element], news: list[Element], votes: _Votes) -> list[tuple[list[Element], list[Element]]]:
+def _split_bridged(olds: list[Element], news: list[Element], votes: _Votes,
+                   seen_fraction: float = 0.5) -> list[tuple[list[Element], list[Element]]]:
     """A matched group cut into the objects it holds. A new shape over two stored openings with wall between them
     (:func:`_separated_by_wall`) saw them as one -- a pier it read as glass, a reveal that hid it -- and must not
     merge them into one rectangle (issue 18 round 11, dev seed 154: two windows 0.57 m apart, the pier wall by 54
     votes to 26, fused into one 2.7 m wide). The stored openings are grouped by that test; each group takes the part
-    of the new shapes within half the gap to the nearest other group."""
-    n = len(olds)
-    if n < 2 or not news:
-        return [(olds, news)]
-    one = np.array([[i == j or not _separated_by_wall(a, b, votes) for j, b in enumerate(olds)]
-                    for i, a in enumerate(olds)])
+    of the new shapes within half the gap to the nearest other group. Likewise a stored opening over two new shapes
+    with wall between them: an earlier campaign saw two windows as one, the new one saw the pier (issue 18 round
+    25, dev seed 368: two windows 0.27 m apart that campaign 1 saw at a grazing angle and stored as one 4.1 m wide;
+    campaign 3 saw them apart, and the stored one swallowed both). There the fused votes on the pier were 26 window
+    (campaign 1) against 13 wall (campaign 3, not one window vote), so a stored opening only one campaign saw is
+    split also where the new campaign saw ``seen_fraction`` of the strip, voted wall on it and never window
+    (``new_view`` of :func:`_separated_by_wall`). The stored opening's id goes with the part holding most of it
+    (see :func:`_fuse_openings`)."""
+    if len(olds) >= 2 and news:
+        parts = _split_by_wall(olds, news, votes)
+        if parts is not None:
+            return parts
+    if len(news) >= 2 and olds:
+        parts = _split_by_wall(news, olds, votes, seen_fraction if all(_weight(o) == 1 for o in olds) else None)
+        if parts is not None:
+            swapped = [(pieces, members) for members, pieces in parts]
+            return sorted(swapped, key=lambda p: -sum(e.polygon.area for e in p[0]))
+    return [(olds, news)]
+
+
+def _split_by_wall(anchors: list[Element], others: list[Element], votes: _Votes,
+                   new_view: float | None = None) -> list[tuple[list[Element], list[Element]]] | None:
+    """``anchors`` grouped into objects by :func:`_separated_by_wall`, each group with the part of the ``others``
+    within half the gap to the nearest other group (:func:`_clip_to`); ``None`` when they are one object."""
+    one = np.array([[i == j or not _separated_by_wall(a, b, votes, new_view) for j, b in enumerate(anchors)]
+                    for i, a in enumerate(anchors)])
     _, label = connected_components(one, directed=False)
     groups: dict[int, list[Element]] = {}
-    for k, e in enumerate(olds):
+    for k, e in enumerate(anchors):
         groups.setdefault(int(label[k]), []).append(e)
     if len(groups) == 1:
-        return [(olds, news)]
+        return None
     hulls = {g: box(*shapely.union_all([e.polygon for e in members]).bounds) for g, members in groups.items()}
     out = []
     for g, members in groups.items():
         reach = min(hulls[g].distance(h) for k, h in hulls.items() if k != g) / 2.0
         region = hulls[g].buffer(reach, join_style="mitre")
-        pieces = [p for p in (_clip_to(e, region) for e in news) if p is not None]
+        pieces = [p for p in (_clip_to(e, region) for e in others) if p is not None]
         out.append((members, pieces))
     return out
 
@@ -1106,8 +1143,9 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
     # a stored piece and a new piece of one window (its top seen above a car, the rest below by another campaign)
     # overlap little but line up: one object (issue 18 round 24, dev seed 365: two windows stored, one false)
     groups = [part for oi, ni in _clusters(old, new, lambda e: "opening", params, aligned=True)
-              for part in _split_bridged([old[i] for i in oi], [new[j] for j in ni], votes)]
+              for part in _split_bridged([old[i] for i in oi], [new[j] for j in ni], votes, params.seen_fraction)]
     stored_at = _stored_index(old, votes.grid) if any(o and n for o, n in groups) else None
+    kept_ids: set[int] = set()
     for olds, news in groups:
         if not news:
             for e in olds:
@@ -1119,6 +1157,9 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
                         changed.add(e.element_id)
             continue
         keep_id = _keeper(olds).element_id if olds else ids()
+        if keep_id in kept_ids:  # the second part of a stored opening split by wall (_split_bridged) is a new one
+            keep_id = ids()
+        kept_ids.add(keep_id)
         extra = None if olds or not unknown else _unknown_bounds(news, unknown)
         merged = _merge_opening(olds + news, keep_id, votes, params, extent, n_old=len(olds), extra_bounds=extra,
                                 min_size=min_size, doors=doors,
@@ -1129,7 +1170,7 @@ def _fuse_openings(old: list[Element], new: list[Element], votes: _Votes, ids: _
             continue
         for e in olds:  # the new shape is voted down: the stored ones stay unless the fused votes now drop them
             rescored = _rescored_opening(e, votes, params, min_size, min_fill)
-            if rescored is not None:
+            if rescored is not None and all(o.element_id != rescored.element_id for o in out):
                 out.append(rescored)
                 if rescored is not e:
                     changed.add(e.element_id)
