@@ -527,10 +527,10 @@ def test_door_typing_by_size_ground_line_and_leaf():
 
 
 
-def test_a_window_verdict_for_want_of_leaf_evidence_is_undecided():
+def test_a_verdict_for_want_of_leaf_evidence_is_undecided():
     """Issue 18 round 24 (dev seed 358): a door-sized opening 0.6 m above the ground line is a door when a leaf
     closes it and a window when the pulses cross it; with no pulse through its core (seen at a grazing angle)
-    nothing says which, so the window verdict is undecided. Above ``door_leaf_tol`` (1.1 m), or without a
+    nothing says which, so the verdict is undecided: a door (round 26) unless wider than a leaf. Above ``door_leaf_tol`` (1.1 m), or without a
     door's size, a window is a window whatever the pulses say."""
     from lidarmap.facade.openings import door_or_window_verdict
 
@@ -540,8 +540,14 @@ def test_a_window_verdict_for_want_of_leaf_evidence_is_undecided():
     lifted = (0.0, 1.0, 0.6, 2.9)  # 1.0 m x 2.3 m, 0.6 m above the ground line at 0.0
     assert door_or_window_verdict(lifted, 0.0, mask, shut, params) == (ElementKind.DOOR, False)
     assert door_or_window_verdict(lifted, 0.0, mask, glazed, params) == (ElementKind.WINDOW, False)
-    assert door_or_window_verdict(lifted, 0.0, mask, unmeasured, params) == (ElementKind.WINDOW, True)
-    assert door_or_window_verdict(lifted, 0.0, mask, None, params) == (ElementKind.WINDOW, True)
+    # round 26 (dev seeds 398, 402): door-tall and door-wide a few steps up, it is a door for want of evidence ...
+    assert door_or_window_verdict(lifted, 0.0, mask, unmeasured, params) == (ElementKind.DOOR, True)
+    assert door_or_window_verdict(lifted, 0.0, mask, None, params) == (ElementKind.DOOR, True)
+    wide = (0.0, 2.4, 0.6, 2.9)  # ... wider than a leaf (open_door_max_width 1.8 m) a shop window ...
+    assert door_or_window_verdict(wide, 0.0, np.ones((23, 24), dtype=bool), None, params) == (ElementKind.WINDOW, True)
+    steep = (0.0, 1.0, 0.9, 3.0)  # ... and 0.9 m up, more than a few steps (door_steps_tol 0.7 m), a tall window
+    assert door_or_window_verdict(steep, 0.0, mask, None, params) == (ElementKind.WINDOW, True)
+    assert door_or_window_verdict(steep, 0.0, mask, shut, params) == (ElementKind.DOOR, False)  # a leaf: a door
     high = (0.0, 1.0, 1.3, 3.6)  # the same opening 1.3 m up: beyond any leaf's steps
     assert door_or_window_verdict(high, 0.0, mask, None, params) == (ElementKind.WINDOW, False)
     short = (0.0, 1.0, 0.6, 2.2)  # 1.6 m tall: no door's size
@@ -1050,3 +1056,34 @@ def test_a_wall_guessed_between_sparse_scan_lines_casts_no_wall_vote():
     changed = new.evidence.object_votes[returned] != old.evidence.object_votes[returned]
     assert changed.sum() <= 0.01 * returned.sum()
     assert np.array_equal(new.evidence.seen, old.evidence.seen)
+
+
+def test_the_top_of_a_door_seen_above_a_van_is_unknown_not_a_window():
+    """Issue 18 round 26 (dev seeds 388, 392, 403): a van parked in front hides a door's lower part; the 0.8 m
+    seen above it, closed by wall on three sides, was stored as a window. Nothing was observed between it and the
+    ground line and it would be door-sized if it reached the ground, so its kind is unknown. A window with wall seen
+    below its sill, and one whose top lies higher than a door's above the ground line, stay windows."""
+    from lidarmap.facade.openings import HOLE, OBJECT, OCCLUDED, detect_openings
+
+    def kinds(values, params=FacadeParams()):
+        return [op.kind for op in detect_openings(values, 0.1, params, ground_t=np.zeros(50)) if op.n_cells > 20]
+
+    values = np.full((60, 50), OBJECT, dtype=np.int8)
+    values[0:14, 5:30] = OCCLUDED  # the van's shadow, 1.4 m tall
+    values[14:22, 10:20] = HOLE  # the door's top 0.8 m, 1.0 m wide, its top 2.2 m above the ground line
+    ops = [op for op in detect_openings(values, 0.1, FacadeParams(), ground_t=np.zeros(50)) if op.n_cells > 20]
+    assert [op.kind for op in ops] == [ElementKind.UNKNOWN] and ops[0].window_evidence  # it still votes
+    assert kinds(values, FacadeParams().updated(hidden_bottom_unknown=False)) == [ElementKind.WINDOW]
+    values[10:14, 5:30] = OBJECT  # wall seen between the van's roof and the opening: a sill
+    assert kinds(values) == [ElementKind.WINDOW]
+    values[0:14, 5:30] = OBJECT
+    values[0:8, 5:30] = OCCLUDED  # a car hides the wall below a window seen whole from 0.8 m up
+    values[8:22, 10:20] = HOLE  # its bottom may be a sill (hidden_bottom_min_height 1.2 m): a window
+    assert kinds(values) == [ElementKind.WINDOW]
+    values[8:14, 10:20] = OCCLUDED  # seen from 1.4 m up only: unknown
+    assert kinds(values) == [ElementKind.UNKNOWN]
+    values[0:14, 5:30] = OCCLUDED
+    values[14:22, 10:20] = OBJECT
+    values[0:32, 5:30] = OCCLUDED  # a tree hides the ground floor
+    values[32:40, 10:20] = HOLE  # a first-floor window, its top 4.0 m up: no door
+    assert kinds(values) == [ElementKind.WINDOW]

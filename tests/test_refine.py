@@ -982,24 +982,44 @@ def test_a_window_verdict_from_a_shape_too_short_for_a_door_does_not_retype_a_do
         assert fused[0].polygon.bounds[3] - fused[0].polygon.bounds[1] >= 1.95
 
 
+def _fused_verdicts(stored_kind, new_kind, stored_poly, new_poly, new_weight: int, campaign: int) -> list:
+    """The fused kind of a stored shape and a new one of the other kind, the new one undecided and decided:
+    [(element id, kind, kind_undecided)] for each."""
+    from lidarmap.map.refine import _Grid
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    out = []
+    for undecided in (True, False):
+        stored = [Element(3, stored_kind, stored_poly, None, 0.1, campaigns=[1])]
+        new = [Element(0, new_kind, new_poly, None, 0.05, campaigns=[campaign], kind_undecided=undecided)]
+        old_w, new_w = grid.raster(stored_poly).astype(int), new_weight * grid.raster(new_poly).astype(int)
+        objects = 2 * (~grid.raster(stored_poly) & ~grid.raster(new_poly)).astype(int)
+        fused = _fused_pair(grid, stored, new, old_w, new_w, objects, OpeningParams())
+        out.append([(e.element_id, e.kind, e.kind_undecided) for e in fused])
+    return out
+
+
 def test_an_undecided_window_verdict_does_not_retype_a_stored_door():
     """Issue 18 round 24 (dev seed 358 façade 34): campaign 1 found a door 0.59 m above the ground line by its
     leaf; campaign 3 saw it from a grazing angle with no pulse through it and typed it a window for want of leaf
     evidence (``kind_undecided``), with more window evidence than campaign 1 had, and the fused opening became a
     window. An undecided window does not vote against a door: the door stays. The same shape decided (pulses
     crossed it: glass) still outvotes the door."""
-    from lidarmap.map.refine import _Grid
+    undecided, decided = _fused_verdicts(ElementKind.DOOR, ElementKind.WINDOW, box(1.0, 0.6, 2.0, 2.9),
+                                         box(1.2, 0.65, 2.1, 2.95), 2, 3)
+    assert undecided == [(3, ElementKind.DOOR, False)]
+    assert decided == [(3, ElementKind.WINDOW, False)]
 
-    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
-    door, seen = box(1.0, 0.6, 2.0, 2.9), box(1.2, 0.65, 2.1, 2.95)
-    for undecided, kind in ((True, ElementKind.DOOR), (False, ElementKind.WINDOW)):
-        stored = [Element(3, ElementKind.DOOR, door, None, 0.1, campaigns=[1])]
-        new = [Element(0, ElementKind.WINDOW, seen, None, 0.05, campaigns=[3], kind_undecided=undecided)]
-        old_w, new_w = grid.raster(door).astype(int), 2 * grid.raster(seen).astype(int)
-        objects = 2 * (~grid.raster(door) & ~grid.raster(seen)).astype(int)
-        fused = _fused_pair(grid, stored, new, old_w, new_w, objects, OpeningParams())
-        assert [(e.element_id, e.kind) for e in fused] == [(3, kind)], undecided
-        assert not fused[0].kind_undecided
+
+def test_an_undecided_door_verdict_does_not_retype_a_stored_window():
+    """Issue 18 round 26: the detection types a door-sized opening a few steps up a door when no pulse through it
+    said whether a leaf closes it (``kind_undecided``). Against a window another campaign measured (its pulses
+    crossed the glass) that verdict does not vote, however much window evidence it holds; decided, it outvotes
+    the stored window."""
+    undecided, decided = _fused_verdicts(ElementKind.WINDOW, ElementKind.DOOR, box(1.0, 0.6, 2.0, 2.9),
+                                         box(1.05, 0.62, 2.05, 2.92), 3, 2)
+    assert undecided == [(3, ElementKind.WINDOW, False)]
+    assert decided == [(3, ElementKind.DOOR, False)]
 
 
 def _fused_pair(grid, stored, new, old_w, new_w, objects, doors) -> list:

@@ -324,10 +324,16 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
             unknown.rect = seen_rect if hidden else None
             out.append(unknown)
             continue
-        kind, undecided = door_or_window_verdict(bounds, float(np.mean(ground[rect[2]:rect[3]])), mask, opaque,
-                                                 params, width_cut=side_hidden(work, rect, params))
+        ground_here = float(np.mean(ground[rect[2]:rect[3]]))
+        width_cut = side_hidden(work, rect, params)
+        kind, undecided = door_or_window_verdict(bounds, ground_here, mask, opaque, params, width_cut=width_cut)
         if cut is not None:  # wall closes it below: no door, whatever the ground line of a wall seen this little
             kind, undecided = ElementKind.WINDOW, False
+        elif kind is ElementKind.WINDOW and low is None \
+                and door_below_hidden(work, rect, bounds, ground_here, t0, cell, params, width_cut):
+            unknown.rect = seen_rect  # the top of a door or a window: what hid its lower part decides which
+            out.append(unknown)
+            continue
         if low is not None:
             eps = window_uncertainty_eq3(local, rect)  # the occluded rows it now covers count
         out.append(Opening(kind, mask, rect, eps, fill, occ_border, n_cells, region, bounds,
@@ -386,6 +392,34 @@ def below_floor_level(openings: list[Opening], ground: np.ndarray, params: Facad
             o.kind = ElementKind.WINDOW
             done += 1
     return done
+
+
+def door_below_hidden(values: np.ndarray, rect: tuple[int, int, int, int], bounds: tuple[float, float, float, float],
+                      ground: float, t0: float, cell: float, params: FacadeParams, width_cut: bool = False) -> bool:
+    """Whether a window's seen part may be the top of a door whose lower part the campaign did not see: with
+    ``hidden_bottom_unknown``, the cells between the ground line (``ground``, façade t) and the rectangle's bottom
+    (r0, r1, c0, c1 = ``rect``) are mostly not observed, without one row of mostly observed wall among them (a car or
+    a van in front), and the rectangle (``bounds``) would have a door's size if it reached the ground: door-wide
+    (``door_min_width`` .. ``door_max_width``; no minimum when ``width_cut``) and its top ``door_min_height`` ..
+    ``door_max_height`` above the ground line. Its bottom, hence its kind, is then unknown (issue 18 round 26,
+    dev seeds 388, 392 and 403: the upper 0.8-1.9 m of doors seen above parked vehicles were stored as windows)."""
+    op = params.openings
+    if not op.hidden_bottom_unknown:
+        return False
+    r0, r1, c0, c1 = rect
+    g_row = max(int(math.floor((ground - t0) / cell + 0.5)), 0)
+    if r0 - g_row < 2:
+        return False  # it reaches the ground line: the verdict saw its bottom
+    width, top = bounds[1] - bounds[0], bounds[3] - ground
+    if bounds[2] - ground < op.hidden_bottom_min_height:
+        return False  # the bottom seen may be a ground-floor window's sill with the wall below it hidden
+    if not (op.door_min_height <= top <= op.door_max_height
+            and (width_cut or op.door_min_width <= width) and width <= op.door_max_width):
+        return False
+    band = values[g_row:r0, c0:c1]
+    if band.size == 0 or bool(((band == OBJECT).mean(axis=1) > 0.5).any()):
+        return False  # wall seen below it: a sill, whatever hid the rest
+    return float(np.mean(band == OCCLUDED)) > 0.5
 
 
 def side_hidden(values: np.ndarray, rect: tuple[int, int, int, int], params: FacadeParams) -> bool:
@@ -503,7 +537,8 @@ def door_or_window_verdict(bounds: tuple[float, float, float, float], ground: fl
     ``door_bottom_tol`` but within ``door_leaf_tol`` of the ground line, with no pulse through its core, is a
     window only because nothing said whether a leaf closes it. Another campaign that measured the leaf may
     settle it (issue 18 round 24, dev seed 358: a door 0.59 m above the ground line, found a door by campaign 1,
-    seen by campaign 3 without a passing pulse and retyped a window)."""
+    seen by campaign 3 without a passing pulse and retyped a window). Undecided, it is a door when no wider than
+    ``open_door_max_width`` and starting within ``door_steps_tol`` of the ground line (round 26), else a window."""
     op = params.openings
     width, height = bounds[1] - bounds[0], bounds[3] - bounds[2]
     if not op.door_sized(max(width, op.door_min_width) if width_cut else width, height):
@@ -515,7 +550,14 @@ def door_or_window_verdict(bounds: tuple[float, float, float, float], ground: fl
     tol = op.door_leaf_tol if leaf else op.door_bottom_tol
     if bounds[2] <= ground + tol:
         return ElementKind.DOOR, False
-    return ElementKind.WINDOW, len(share) == 0 and bounds[2] <= ground + op.door_leaf_tol
+    if len(share) == 0 and bounds[2] <= ground + op.door_leaf_tol:
+        # no pulse through its core said whether a leaf closes it: door-tall, door-wide and starting a few steps
+        # above the street (door_steps_tol) it is a door (issue 18 round 26, dev seeds 398, 402 and 404: doors
+        # up 0.4-0.55 m of steps, seen at grazing angles, were stored as windows); higher, or wider than a leaf,
+        # a window (tall windows 0.8-1.1 m up became doors)
+        door = width <= op.open_door_max_width and bounds[2] <= ground + op.door_steps_tol
+        return (ElementKind.DOOR if door else ElementKind.WINDOW), True
+    return ElementKind.WINDOW, False
 
 
 def _leaf_share(mask: np.ndarray, opaque: np.ndarray | None) -> np.ndarray:

@@ -850,6 +850,16 @@ def _kind_voters(members: list[Element], fused, doors: OpeningParams | None, n_o
     an earlier campaign measured 1.85-1.94 m wide stayed windows against the door a later campaign saw). And a
     new shape the detection left undecided (``Element.kind_undecided``: a window for want of leaf evidence) does
     not vote against a door either (issue 18 round 24, dev seed 358); stored shapes carry no such flag."""
+    voters = _size_voters(members, fused, doors, n_old)
+    decided = [k < n_old or not m.kind_undecided for k, m in enumerate(members)]
+    if len({m.kind for m, v in zip(members, voters) if v}) > 1 and any(d and v for d, v in zip(decided, voters)):
+        # a verdict the detection reached for want of leaf evidence does not vote against one it measured
+        voters = [d and v for d, v in zip(decided, voters)]
+    return voters
+
+
+def _size_voters(members: list[Element], fused, doors: OpeningParams | None, n_old: int) -> list[bool]:
+    """The size part of :func:`_kind_voters`: which shapes' kinds still apply to the fused rectangle's size."""
     if doors is None or not _door_sized(fused, doors) \
             or not any(m.kind is ElementKind.DOOR for m in members):
         return [True] * len(members)
