@@ -413,8 +413,7 @@ def door_below_hidden(values: np.ndarray, rect: tuple[int, int, int, int], bound
     width, top = bounds[1] - bounds[0], bounds[3] - ground
     if bounds[2] - ground < op.hidden_bottom_min_height:
         return False  # the bottom seen may be a ground-floor window's sill with the wall below it hidden
-    if not (op.door_min_height <= top <= op.door_max_height
-            and (width_cut or op.door_min_width <= width) and width <= op.door_max_width):
+    if top > op.door_max_height or not op.door_sized(max(width, op.door_min_width) if width_cut else width, top):
         return False
     band = values[g_row:r0, c0:c1]
     if band.size == 0 or bool(((band == OBJECT).mean(axis=1) > 0.5).any()):

@@ -849,7 +849,9 @@ def _kind_voters(members: list[Element], fused, doors: OpeningParams | None, n_o
     on a fused rectangle no wider than that (issue 18 round 17, dev seeds 175 and 225: doors 1.46-1.47 m wide that
     an earlier campaign measured 1.85-1.94 m wide stayed windows against the door a later campaign saw). And a
     new shape the detection left undecided (``Element.kind_undecided``: a window for want of leaf evidence) does
-    not vote against a door either (issue 18 round 24, dev seed 358); stored shapes carry no such flag."""
+    not vote against a door either (issue 18 round 24, dev seed 358); stored shapes carry no such flag. Since
+    round 26 that holds for either kind: when the voting shapes disagree on the kind and one of them is decided,
+    the undecided new shapes do not vote."""
     voters = _size_voters(members, fused, doors, n_old)
     decided = [k < n_old or not m.kind_undecided for k, m in enumerate(members)]
     if len({m.kind for m, v in zip(members, voters) if v}) > 1 and any(d and v for d, v in zip(decided, voters)):
