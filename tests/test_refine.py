@@ -1022,6 +1022,37 @@ def test_an_undecided_door_verdict_does_not_retype_a_stored_window():
     assert decided == [(3, ElementKind.DOOR, False)]
 
 
+def test_a_window_stored_above_a_hidden_bottom_does_not_outvote_the_door_that_reaches_the_ground():
+    """Issue 18 round 27 (dev seed 408 façade 5): a van hid the lowest 0.3 m of a recessed door from campaigns 1
+    and 2, which stored a window 1.45 x 2.02 m starting 0.55 m up. Campaign 3 saw the door whole, down to the
+    ground; the fused rectangle reached the ground too, but the stored window held more evidence and the opening
+    stayed a window. A window shape starting more than window_bottom_margin above a fused door-sized rectangle
+    that starts at the façade's bottom was a window by its bottom's height, and does not vote. A window shape
+    starting only 0.1 m higher still does, and so does any shape when the fused rectangle starts up steps."""
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+
+    def fused_kind(stored_bottom: float, door_bottom: float, params: RefineParams) -> ElementKind:
+        window, door = box(1.0, stored_bottom, 2.45, 2.57), box(1.05, door_bottom, 2.45, 2.54)
+        stored = [Element(3, ElementKind.WINDOW, window, None, 0.1, campaigns=[1, 2])]
+        new = [Element(0, ElementKind.DOOR, door, None, 0.05, campaigns=[3])]
+        old_w, new_w = 2 * grid.raster(window).astype(int), grid.raster(door).astype(int)
+        objects = 2 * (~grid.raster(window) & ~grid.raster(door)).astype(int)
+        votes = _Votes(grid, old_w + new_w, objects, np.full(grid.shape, 3), np.ones(grid.shape, int),
+                       np.ones(grid.shape, bool), window_new=new_w)
+        fused, _ = _fuse_openings(stored, new, votes, _Ids(stored + new), params, (0.0, 4.0, 0.0, 4.0), [], 0.45,
+                                  OpeningParams())
+        assert len(fused) == 1 and fused[0].element_id == 3, fused
+        assert fused[0].polygon.bounds[1] <= door_bottom + 0.1, fused[0].polygon.bounds  # the refit reached down
+        return fused[0].kind
+
+    assert fused_kind(0.55, 0.22, RefineParams()) is ElementKind.DOOR
+    assert fused_kind(0.55, 0.22, RefineParams(window_bottom_margin=10.0)) is ElementKind.WINDOW
+    assert fused_kind(0.32, 0.22, RefineParams()) is ElementKind.WINDOW
+    assert fused_kind(0.6, 0.4, RefineParams()) is ElementKind.WINDOW  # 0.4 m up: past door_bottom_tol
+
+
 def _fused_pair(grid, stored, new, old_w, new_w, objects, doors) -> list:
     """The openings after fusing ``new`` into ``stored`` on a 4 m x 4 m façade: window votes of the earlier
     campaigns ``old_w`` and of the new one ``new_w``, wall weight ``objects``, every cell seen by two."""
@@ -1351,3 +1382,38 @@ def test_new_strips_that_each_take_the_sides_of_one_unknown_region_are_stored_on
     assert once[0].polygon.bounds == pytest.approx((1.0, 0.2, 1.5, 2.7))
     monkeypatch.setattr(refine, "_one_per_object", lambda openings, params: openings)
     assert len(fused()) == 3  # what the map stored before the rule
+
+
+def test_a_stored_room_plane_behind_the_street_wall_yields_to_the_wall_a_campaign_finds(monkeypatch):
+    """Dev seed 400 (round 27): campaign 1 saw only the inside of a room through the windows and stored its back
+    wall, 4 x 2 m and 0.53 m behind the street edge, as that edge's façade. Campaign 2 was the first to see the
+    wall; the stored plane took the returns from the panes a few cm behind the wall (and, along the whole edge, its
+    s range), and the wall found from the other points held no opening (F1 0.98 -> 0.92). A plane with no opening
+    more than yield_depth behind a wall twice its size on the same edge is dropped, and the campaign's points go to
+    the wall."""
+    import test_facade
+
+    from lidarmap.facade.model import FacadeFrame
+
+    monkeypatch.setattr(test_facade, "INTERIOR_Y", 0.15)  # panes 0.15 m behind the wall in every window
+    cloud, traj, fps, truth = make_scene(van=False)
+    seen = refine_map(BuildingMap(crs_wkt=CRS_UTM.to_wkt()), cloud, traj, fps, FacadeParams(), RefineParams(), 1)
+    building = seen.buildings["B1"]
+    wall = max(building.facades, key=lambda f: f.extent[1] - f.extent[0])
+    behind = FacadeFrame(origin=wall.frame.origin - 0.6 * wall.frame.normal, u=wall.frame.u)
+    room = Facade(facade_id=0, frame=behind, sigma=0.02, extent=(6.0, 10.0, 3.0, 5.0),
+                  footprint_edge=wall.footprint_edge, campaigns=[1], n_points=800)
+    stored = dataclasses.replace(seen, buildings={"B1": dataclasses.replace(building, facades=[room])})
+
+    def windows_found(params):
+        fused = refine_map(stored, cloud, traj, fps, FacadeParams(), params, campaign_id=2).buildings["B1"]
+        depths = [abs(float(wall.frame.to_facade(f.frame.origin)[2])) for f in fused.facades]
+        walls = [f for f, d in zip(fused.facades, depths) if d < 0.1]
+        found = sum(any(polygon_iou(e.polygon, _facade_rect(f.frame, w)) >= 0.5 for f in walls for e in
+                        _openings(f).values()) for w in truth["windows"])
+        return found, sorted(round(d, 1) for d in depths)
+
+    found, depths = windows_found(RefineParams())
+    assert found >= len(truth["windows"]) - 1 and depths == [0.0], (found, len(truth["windows"]), depths)
+    kept, depths = windows_found(RefineParams(yield_depth=10.0))  # the rule off: the room plane keeps the returns
+    assert 0.6 in depths and kept < found - 2, (kept, found, depths)

@@ -113,6 +113,10 @@ class RefineParams:
             The margin is what a footprint may be off from the wall (cadastre: a few dm). A façade on no footprint
             edge gets no margin: a room's side wall seen through a window took a strip of the street wall square to
             it, at every height, before a campaign had stored that wall (issue 18 round 22, dev seed 347).
+        yield_depth (0.3): a stored façade on a footprint edge that holds no window or door, lies more than this
+            behind a wall a new campaign finds on the same edge and is less than half that wall's area is the back
+            of a room seen through the windows: it is dropped and the campaign's points are assigned again, so that
+            the returns through the windows reach the wall (issue 18 round 27, dev seed 400).
         extend_min (0.2): the extent grows where the new main-layer points reach at least this far beyond it
             (a few cm of misregistration must not add a row of empty cells every campaign) ...
         extend_min_area (1.0): ... and cover at least this many m² of grid cells there (a few stray points of a
@@ -160,6 +164,10 @@ class RefineParams:
             another (neighbouring windows never overlap; ``contain_fraction`` is for all elements).
         line_offsets (1): each shape's edges give candidate lines at this many cells either side for the
             vote-map rectangle refit.
+        window_bottom_margin (0.2): when a fused rectangle of a door's size starts within the detection's
+            ``door_bottom_tol`` of the façade's bottom and a shape saw a door there, a shape typed window that
+            starts more than this above the fused rectangle does not vote on its kind: it was a window by the
+            height of its bottom (a van hid the door's lowest part), which the fused opening no longer has.
         max_window_uncertainty (0.5): a window/door merged from matched shapes whose weighted eq. (3) ε exceeds
             this after fusion (campaigns saw wall across it) is dropped. A stored one the new campaign saw without
             finding it is judged by evidence weight instead (``outweighed_by_wall``): a striped vote map (a door
@@ -203,6 +211,8 @@ class RefineParams:
         "association_distance": ">= 0",
         "extend_margin": ">= 0",
         "corner_margin": ">= 0",
+        "yield_depth": ">= 0",
+        "window_bottom_margin": ">= 0",
         "extend_min": ">= 0",
         "extend_min_area": ">= 0",
         "extend_column_share": "[0, 1]",
@@ -238,6 +248,8 @@ class RefineParams:
     association_distance: float = 2.0
     extend_margin: float = 2.0
     corner_margin: float = 0.5
+    yield_depth: float = 0.3
+    window_bottom_margin: float = 0.2
     extend_min: float = 0.2
     extend_min_area: float = 1.0
     extend_column_share: float = 0.1
@@ -794,7 +806,7 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     # the kind of the fused rectangle goes by the evidence each shape holds over it: the part of a shape the refit
     # rejected (a door shape twice the window's width, its other half wall) has no say in what the opening is
     evidence_over = _member_weights(members, n_old, votes, g.raster(poly))
-    voters = _kind_voters(members, poly, doors, n_old)
+    voters = _kind_voters(members, poly, doors, n_old, bottom=(extent[2], params.window_bottom_margin))
     voting = [m for m, v in zip(members, voters) if v]
     votes_on_kind = [(m.kind, w) for m, w, v in zip(members, evidence_over, voters) if v]
     kind = weighted_kind([k for k, _ in votes_on_kind], [w for _, w in votes_on_kind], keeper.kind)
@@ -838,7 +850,8 @@ def _door_sized(polygon, doors: OpeningParams) -> bool:
     return doors.door_sized(s1 - s0, t1 - t0, 1e-9)
 
 
-def _kind_voters(members: list[Element], fused, doors: OpeningParams | None, n_old: int = 0) -> list[bool]:
+def _kind_voters(members: list[Element], fused, doors: OpeningParams | None, n_old: int = 0,
+                 bottom: tuple[float, float] | None = None) -> list[bool]:
     """Which matched shapes vote on the kind of the fused rectangle ``fused`` (the first ``n_old`` members are
     stored shapes). A shape typed window whose own rectangle has no door's size was a window by its size alone
     (the detection types such shapes windows before it looks at the ground): once the fused rectangle has a
@@ -851,8 +864,9 @@ def _kind_voters(members: list[Element], fused, doors: OpeningParams | None, n_o
     new shape the detection left undecided (``Element.kind_undecided``: a window for want of leaf evidence) does
     not vote against a door either (issue 18 round 24, dev seed 358); stored shapes carry no such flag. Since
     round 26 that holds for either kind: when the voting shapes disagree on the kind and one of them is decided,
-    the undecided new shapes do not vote."""
-    voters = _size_voters(members, fused, doors, n_old)
+    the undecided new shapes do not vote. ``bottom`` (the façade's bottom line, a margin): see
+    :func:`_size_voters`."""
+    voters = _size_voters(members, fused, doors, n_old, bottom)
     decided = [k < n_old or not m.kind_undecided for k, m in enumerate(members)]
     if len({m.kind for m, v in zip(members, voters) if v}) > 1 and any(d and v for d, v in zip(decided, voters)):
         # a verdict the detection reached for want of leaf evidence does not vote against one it measured
@@ -860,16 +874,30 @@ def _kind_voters(members: list[Element], fused, doors: OpeningParams | None, n_o
     return voters
 
 
-def _size_voters(members: list[Element], fused, doors: OpeningParams | None, n_old: int) -> list[bool]:
-    """The size part of :func:`_kind_voters`: which shapes' kinds still apply to the fused rectangle's size."""
+def _size_voters(members: list[Element], fused, doors: OpeningParams | None, n_old: int,
+                 bottom: tuple[float, float] | None = None) -> list[bool]:
+    """The size part of :func:`_kind_voters`: which shapes' kinds still apply to the fused rectangle's size and
+    place. With ``bottom`` = (the façade's bottom line, a margin): when the fused rectangle starts within
+    ``door_bottom_tol`` of that line, a window whose own rectangle starts more than the margin higher was a window
+    by the height of its bottom, which the fused one no longer has, and does not vote (issue 18 round 27, dev seed
+    408: a van hid the lowest 0.3 m of a recessed door from campaigns 1 and 2, which stored a window starting
+    0.55 m up; campaign 3 saw the door reach the ground and the fused rectangle did, but the window outvoted it)."""
     if doors is None or not _door_sized(fused, doors) \
             or not any(m.kind is ElementKind.DOOR for m in members):
         return [True] * len(members)
     narrow = _width(fused) <= doors.open_door_max_width + 1e-9
-    return [m.kind is not ElementKind.WINDOW
-            or (_door_sized(m.polygon, doors) and not (narrow and _width(m.polygon) > doors.open_door_max_width)
-                and not (k >= n_old and m.kind_undecided))
-            for k, m in enumerate(members)]
+    t0 = fused.bounds[1]
+    lowered = bottom is not None and t0 <= bottom[0] + doors.door_bottom_tol
+
+    def applies(k: int, m: Element) -> bool:
+        if m.kind is not ElementKind.WINDOW:
+            return True
+        if lowered and m.polygon.bounds[1] > t0 + bottom[1]:
+            return False
+        return _door_sized(m.polygon, doors) and not (narrow and _width(m.polygon) > doors.open_door_max_width) \
+            and not (k >= n_old and m.kind_undecided)
+
+    return [applies(k, m) for k, m in enumerate(members)]
 
 
 def _width(polygon) -> float:
@@ -1674,12 +1702,59 @@ def assign_to_facades(facades: list[Facade], xyz: np.ndarray, polygon, params: R
     return best
 
 
+def _extent_area(f: Facade) -> float:
+    return (f.extent[1] - f.extent[0]) * (f.extent[3] - f.extent[2])
+
+
+def _behind_new_wall(f: Facade, g: Facade, params: RefineParams) -> bool:
+    """Whether stored façade ``f`` is a plane inside the building that new wall ``g`` hides: on the same footprint
+    edge, parallel, more than ``yield_depth`` behind ``g``, over ``g`` along the wall and smaller, holding no
+    window or door."""
+    if f.footprint_edge is None or f.footprint_edge != g.footprint_edge:
+        return False
+    if any(e.kind in OPENINGS for e in f.elements) or _extent_area(g) < 2.0 * _extent_area(f):
+        return False
+    if abs(float(f.frame.normal @ g.frame.normal)) < math.cos(math.radians(params.normal_max_angle_deg)):
+        return False
+    s0, s1, t0, t1 = f.extent
+    centre = f.frame.to_crs(np.array([0.5 * (s0 + s1), 0.5 * (t0 + t1), 0.0]))
+    if g.frame.to_facade(centre)[2] > -params.yield_depth:
+        return False
+    ends = np.sort(g.frame.to_facade(f.frame.to_crs(np.array([[s0, t0, 0.0], [s1, t0, 0.0]])))[:, 0])
+    over = min(ends[1], g.extent[1]) - max(ends[0], g.extent[0])
+    return over >= 0.5 * (s1 - s0)
+
+
+def _new_facades(stored: Building, camp: CampaignData, ids: np.ndarray, owner: np.ndarray, fparams: FacadeParams,
+                 campaign_id: int, seed: int, rng: np.random.Generator, tm: dict) -> list[Facade]:
+    """Façades of the points no stored façade took (``owner`` < 0), once per campaign."""
+    rest = ids[owner < 0]
+    if len(rest) < fparams.planes.min_facade_points or any(campaign_id in f.campaigns for f in stored.facades):
+        return []
+    clock = time.perf_counter()
+    found = building_facades(camp, rest, stored.footprint, fparams, campaign_id, seed, rng, tm)
+    tm["new_facades"] = tm.get("new_facades", 0.0) + time.perf_counter() - clock
+    return found
+
+
 def refine_building(stored: Building, camp: CampaignData, ids: np.ndarray, fparams: FacadeParams,
                      params: RefineParams, campaign_id: int, seed: int, rng: np.random.Generator,
                      tm: dict) -> Building:
-    """A stored building after one campaign: its façades refined, new façades from the points none of them took."""
+    """A stored building after one campaign: its façades refined, new façades from the points none of them took.
+
+    A stored façade that a new wall hides (:func:`_behind_new_wall`: a campaign that saw only the inside of a room
+    through the windows stored its back wall on the street edge) is dropped and the campaign's points are assigned
+    again: that plane took the returns through the wall's windows, and the wall found without them held no opening
+    (issue 18 round 27, dev seed 400)."""
     polygon = stored.footprint
+    next_id = max((f.facade_id for f in stored.facades), default=-1) + 1  # a dropped façade's id is not reused
     owner = assign_to_facades(stored.facades, camp.xyz[ids], polygon, params)
+    found = _new_facades(stored, camp, ids, owner, fparams, campaign_id, seed, rng, tm)
+    hidden = {f.facade_id for f in stored.facades if any(_behind_new_wall(f, g, params) for g in found)}
+    if hidden:
+        stored = dataclasses.replace(stored, facades=[f for f in stored.facades if f.facade_id not in hidden])
+        owner = assign_to_facades(stored.facades, camp.xyz[ids], polygon, params)
+        found = _new_facades(stored, camp, ids, owner, fparams, campaign_id, seed, rng, tm)
     facades: list[Facade] = []
     for k, f in enumerate(stored.facades):
         members = ids[owner == k]
@@ -1688,16 +1763,10 @@ def refine_building(stored: Building, camp: CampaignData, ids: np.ndarray, fpara
             refined = refine_facade(f, camp, members, polygon, fparams, params, campaign_id,
                                     derive_seed(seed, int(f.facade_id)), tm)
         facades.append(refined if refined is not None else f)
-    rest = ids[owner < 0]
-    if len(rest) >= fparams.planes.min_facade_points and not any(campaign_id in f.campaigns for f in stored.facades):
-        clock = time.perf_counter()
-        found = building_facades(camp, rest, polygon, fparams, campaign_id, seed, rng, tm)
-        next_id = max((f.facade_id for f in stored.facades), default=-1) + 1
-        for f in found:
-            f.facade_id = next_id
-            next_id += 1
-            facades.append(f)
-        tm["new_facades"] = tm.get("new_facades", 0.0) + time.perf_counter() - clock
+    for f in found:
+        f.facade_id = next_id
+        next_id += 1
+        facades.append(f)
     return dataclasses.replace(stored, facades=facades)
 
 
