@@ -40,6 +40,7 @@ from lidarmap.facade.eval import (  # noqa: E402
     match_facade,
     polygon_iou,
     union_visibility,
+    unscored_outlines,
 )
 from lidarmap.facade.model import ElementKind  # noqa: E402
 from lidarmap.facade.params import FacadeParams  # noqa: E402
@@ -83,7 +84,7 @@ def map_openings(m: BuildingMap, truth) -> tuple[dict[int, list[tuple[str, objec
 def error_lines(m: BuildingMap, truth, campaigns: list[int]) -> list[str]:
     """One line per missed truth opening and per false map opening after ``campaigns``, matched as the scorer
     matches them (``lidarmap.facade.eval``: per kind, one to one, best IoU first; a prediction over a hardly seen
-    truth element of its kind counts neither way)."""
+    truth opening counts neither way: ``unscored_outlines``)."""
     seen = union_visibility(truth, campaigns)
     each = {c: union_visibility(truth, [c]) for c in campaigns}
     per_facade, lines = map_openings(m, truth)
@@ -104,9 +105,9 @@ def error_lines(m: BuildingMap, truth, campaigns: list[int]) -> list[str]:
                 lines.append(f"  MISS façade {tf.id} element {te.id} {kind}/{te.subtype} s {s0:.2f}-{s1:.2f} "
                              f"t {t0:.2f}-{t1:.2f} depth {te.depth:+.2f} seen by campaign [{by}]; best map "
                              f"opening IoU {iou:.2f} ({other})")
+            unscored = unscored_outlines(tf.elements, kind, lambda te: seen.get(te.id, 0.0) >= MIN_VISIBLE)
             for i, p in enumerate(pred):
-                if i in matched_p or any(not visible[j] and polygon_iou(p, true[j].polygon) > 0.1
-                                         for j in range(len(true))):
+                if i in matched_p or any(polygon_iou(p, h) > 0.1 for h in unscored):
                     continue
                 iou, te = max(((polygon_iou(p, te.polygon), te) for te in tf.elements), key=lambda x: x[0],
                               default=(0.0, None))

@@ -636,6 +636,32 @@ def _scored_wall_held_as(pieces: list[list[tuple[float, float]]]) -> dict:
     return evaluate_facades([SimpleNamespace(building_id="5", facades=facades)], truth, 1)["window"]
 
 
+def test_a_window_over_the_seen_top_of_a_hardly_visible_door_counts_neither_way():
+    """Predictions over a truth opening seen less than ``min_visible`` count neither way, whatever their type: the
+    seen top of a door (a van hid the rest) is a window's rectangle. Until 2026-12-03 only truth of the
+    prediction's own kind was looked at, and such a window was a false positive while a door there counted
+    neither way. Over a door that was seen, the window is a false window and the door a missed one."""
+    from types import SimpleNamespace
+
+    from lidarmap.facade.eval import evaluate_facades
+    from lidarmap.facade.model import Element, Facade
+    from lidarmap.sim.truth import TruthElement, TruthFacade
+
+    origin, u = np.array([100.0, 200.0, 0.0]), np.array([1.0, 0.0, 0.0])
+    for seen, fp, fn in ((0.5, 0, 0), (1.0, 1, 1)):
+        door = TruthElement(id=1, facade_id=1, kind="door", subtype="door", rect=(3.0, 4.0, 0.0, 2.2), depth=-0.2,
+                            has_interior=False, room=None, corners=np.zeros((4, 3)), visible_fraction={1: seen},
+                            hit_fraction={1: seen})
+        wall = TruthFacade(id=1, building_id=5, edge=0, origin=origin, u=u, width=10.0, t_bottom=0.0, t_eave=6.0,
+                           t_top=6.0, street_facing=True, elements=[door])
+        top = Element(0, ElementKind.WINDOW, box(3.0, 1.2, 4.0, 2.2), None, 0.1)  # IoU 0.45 with the door
+        facade = Facade(facade_id=0, frame=FacadeFrame(origin=origin, u=u), sigma=0.01, extent=(0.0, 10.0, 0.0, 6.0),
+                        elements=[top])
+        truth = SimpleNamespace(buildings=[SimpleNamespace(id=5, facades=[wall])])
+        scores = evaluate_facades([SimpleNamespace(building_id="5", facades=[facade])], truth, 1)
+        assert (scores["window"]["fp"], scores["door"]["fn"]) == (fp, fn), seen
+
+
 def test_a_wall_held_as_two_map_facades_counts_each_truth_opening_once():
     """A later campaign may add a second piece of a stored wall: each truth opening is matched, missed or found twice
     once over both pieces (before 2026-12-01 each piece was scored against all four windows: 4 tp, 4 fn here)."""

@@ -10,7 +10,9 @@ model). Matching rules:
   two façades counts each truth opening once, and an opening found on both as one match and one false positive;
   until 2026-12-01 each extracted façade was scored against all of the truth façade's openings, so the openings of
   one piece counted as missed by the other). Only truth openings with ``visible_fraction[campaign] >= min_visible`` count (true positives and false
-  negatives); predictions on less visible truth openings (IoU > 0.1) count neither way. Truth façades that no
+  negatives); predictions on less visible truth openings (IoU > 0.1) count neither way — of either opening kind: a
+  window over a hardly visible door (its seen top) counts neither way, like a door there (until 2026-12-03 only
+  truth of the prediction's own kind was looked at, so such a window was a false positive). Truth façades that no
   extracted façade matched contribute their visible openings as false negatives. For a map refined by several
   campaigns pass ``campaigns``: an opening is visible when the cells seen by *any* of them (the truth's
   per-campaign ``wall_seen`` grids, OR-ed: a window behind a balcony's parapet is hidden by it) cover
@@ -45,6 +47,7 @@ class ObservedBuilding(Protocol):
 
 
 SCORED_KINDS = ("window", "door", "structure")
+OPENING_KINDS = ("window", "door")
 
 
 def polygon_iou(a: Polygon, b: Polygon) -> float:
@@ -153,8 +156,19 @@ def _plane_errors(f: Facade, tf, register: Callable | None, tally: _Tally) -> No
     tally.angles.append(math.degrees(math.acos(min(1.0, abs(float(tf.normal @ f.frame.normal))))))
 
 
-def _score_kind(pred: list[Polygon], true: list, visible: list[bool], kind: str, iou: float, tally: _Tally) -> None:
-    """Greedy matches of one kind on one façade; predictions on hardly visible truth count neither way."""
+def unscored_outlines(elements: list, kind: str, is_visible: Callable, across_kinds: bool = True) -> list[Polygon]:
+    """The outlines of the hardly visible truth elements a prediction of ``kind`` counts neither way over: those of
+    its kind, and for a window or door those of the other opening kind too (the seen top of a door is a window's
+    rectangle: its type cannot be scored where the door is not; until 2026-12-03 only the prediction's own kind
+    was looked at, and such a window was a false positive)."""
+    kinds = OPENING_KINDS if across_kinds and kind in OPENING_KINDS else (kind,)
+    return [e.polygon for e in elements if e.kind in kinds and not is_visible(e)]
+
+
+def _score_kind(pred: list[Polygon], true: list, visible: list[bool], kind: str, iou: float, tally: _Tally,
+                unscored: list[Polygon]) -> None:
+    """Greedy matches of one kind on one façade; predictions over the ``unscored`` outlines (IoU > 0.1:
+    :func:`unscored_outlines`) count neither way."""
     matches = greedy_match(pred, [e.polygon for e in true], iou)
     matched_p = {i for i, _, _ in matches}
     matched_t = {j for _, j, _ in matches}
@@ -165,9 +179,7 @@ def _score_kind(pred: list[Polygon], true: list, visible: list[bool], kind: str,
             if kind == "window":
                 tally.ious.append(value)
     for i, p in enumerate(pred):
-        if i in matched_p:
-            continue
-        if any(not visible[j] and polygon_iou(p, true[j].polygon) > 0.1 for j in range(len(true))):
+        if i in matched_p or any(polygon_iou(p, h) > 0.1 for h in unscored):
             continue
         c["fp"] += 1
     c["fn"] += sum(1 for j in range(len(true)) if visible[j] and j not in matched_t)
@@ -191,11 +203,12 @@ def _on_truth(f: Facade, tb, register: Callable | None, tally: _Tally, on_truth:
 
 def evaluate_facades(buildings: list[ObservedBuilding], truth, campaign_id: int, register: Callable | None = None,
                      iou: float = 0.5, min_visible: float = 0.9, campaigns: list[int] | None = None,
-                     parapets_hide: bool = True) -> dict:
+                     parapets_hide: bool = True, across_kinds: bool = True) -> dict:
     """Window and door precision/recall/F1, mean IoU, plane offset and angle errors (see the module doc).
 
     ``campaigns`` (a refined map): visibility is the union over these campaigns instead of ``campaign_id`` alone.
-    ``parapets_hide``: see :func:`union_visibility` (False: the truth before 2026-11-26).
+    ``parapets_hide``: see :func:`union_visibility` (False: the truth before 2026-11-26). ``across_kinds``: see
+    :func:`unscored_outlines` (False: the scorer before 2026-12-03, for comparisons with earlier figures).
     """
     if not parapets_hide and not campaigns:
         campaigns = [campaign_id]
@@ -216,7 +229,8 @@ def evaluate_facades(buildings: list[ObservedBuilding], truth, campaign_id: int,
     for tf, rects in on_truth.values():
         for kind in SCORED_KINDS:
             true = [e for e in tf.elements if e.kind == kind]
-            _score_kind([r for k, r in rects if k == kind], true, [is_visible(e) for e in true], kind, iou, tally)
+            _score_kind([r for k, r in rects if k == kind], true, [is_visible(e) for e in true], kind, iou, tally,
+                        unscored_outlines(tf.elements, kind, is_visible, across_kinds))
     for tb in truth.buildings:  # truth façades nobody found: their visible openings are missed
         for tf in tb.facades:
             if tf.id in tally.matched_truth:
