@@ -741,6 +741,33 @@ def test_cells_where_window_and_wall_votes_tie_keep_the_stored_extent():
         assert polygon_iou(fused[0].polygon, expected) >= 0.95, (wall_weight, fused[0].polygon.bounds)
 
 
+def test_wall_votes_from_a_part_view_do_not_cut_a_door_a_later_campaign_saw_whole():
+    """A van hid the lower 1.8 m of a flush door from campaign 1, which saw its top as wall (weight 1 per cell)
+    and stored nothing there; campaign 2 saw the whole door (window weight 1 per cell). Campaign 1 saw less than
+    ``seen_fraction`` of the door, so the tied top cells are no evidence against it: one door, whole. When
+    campaign 1 saw all of the door's cells (its lower part with no vote either way), the ties count as wall: the
+    door's ε over its extent is too high and it is voted down (no cut line lies between its sides here)."""
+    from lidarmap.facade.params import OpeningParams
+    from lidarmap.map.refine import _fuse_openings, _Grid, _Ids, _Votes
+
+    grid = _Grid(0.0, 0.0, 0.1, (40, 40))
+    door, top = box(1.0, 0.3, 2.1, 2.6), box(1.0, 1.8, 2.1, 2.6)
+    cells, top_cells = grid.raster(door), grid.raster(top)
+    new = [Element(0, ElementKind.DOOR, door, None, 0.05, campaigns=[2])]
+    for seen_by_1, expected in ((top_cells, door), (cells, None)):
+        seen_before = ~cells | seen_by_1
+        w_new = cells.astype(int)
+        votes = _Votes(grid, w_new, 2 * (~cells).astype(int) + top_cells, seen_before.astype(int) + 1,
+                       np.ones(grid.shape, int), np.ones(grid.shape, bool), window_new=w_new)
+        fused, _ = _fuse_openings([], new, votes, _Ids([]), RefineParams(), (0.0, 4.0, 0.0, 4.0),
+                                  doors=OpeningParams())
+        if expected is None:
+            assert fused == [], [(e.kind, e.polygon.bounds) for e in fused]
+            continue
+        assert [e.kind for e in fused] == [ElementKind.DOOR], [(e.kind, e.polygon.bounds) for e in fused]
+        assert polygon_iou(fused[0].polygon, expected) >= 0.95, fused[0].polygon.bounds
+
+
 def test_an_unknown_region_the_campaigns_together_see_enclosed_by_wall_becomes_a_window():
     """A window on a side wall: each campaign saw its hole but part of its border unobserved (a reveal's shadow
     fringe, 2 cells, left without votes), so each stored an unknown region. On the fused votes it is a hole with

@@ -181,7 +181,9 @@ class RefineParams:
         seen_fraction (0.5): a stored window is re-scored only when the new campaign saw at least this share of its
             cells; otherwise it is left exactly as stored. Likewise a stored window one campaign saw is split over
             two new shapes by the new campaign's wall votes on the strip between them only when it saw this share
-            of the strip (``_split_bridged``).
+            of the strip (``_split_bridged``). And a new shape matching no stored one keeps the cells where its
+            votes tie the earlier campaigns' wall votes when those campaigns saw less than this share of its cells
+            (``_partly_seen_before``: their wall votes come from a part view).
         refit_keep_share (0.5): a re-scored stored window/door whose refitted rectangle keeps less than this share
             of its opening evidence keeps its stored rectangle: such a refit found the patch the new campaign did
             not read as wall (a strip of a door leaf), not the opening's sides.
@@ -768,8 +770,10 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
             share_old += weight * cells
     total = max(sum(evidence), 1e-12)
     others = np.zeros(claimed.shape, dtype=bool) if foreign is None else foreign[patch]
-    w = np.where(others, 0, _own_votes(votes.window[patch], votes.objects[patch], claimed & ~others,
-                                        share_old / total > 0.5))
+    kept_ties = share_old / total > 0.5
+    if n_old == 0 and _partly_seen_before(votes, patch, claimed, params.seen_fraction):
+        kept_ties = kept_ties | claimed
+    w = np.where(others, 0, _own_votes(votes.window[patch], votes.objects[patch], claimed & ~others, kept_ties))
     cols = _lines_near(g, np.r_[lines[:, 0], lines[:, 2]], 0, c_lo, off)
     rows = _lines_near(g, np.r_[lines[:, 1], lines[:, 3]], 1, r_lo, off)
     # ties go to the extent the stored shapes' evidence claims; a new shape alone keeps the plain line order, except
@@ -821,6 +825,16 @@ def _merge_opening(members: list[Element], keep_id: int, votes: _Votes, params: 
     campaigns = sorted({c for m in members for c in m.campaigns})
     return Element(element_id=keep_id, kind=kind, polygon=poly, layer_id=layer_id, uncertainty=float(eps),
                    n_points=int(sum(m.n_points for m in members)), campaigns=campaigns)
+
+
+def _partly_seen_before(votes: _Votes, patch, claimed: np.ndarray, seen_fraction: float) -> bool:
+    """Whether the campaigns before this one saw less than ``seen_fraction`` of the cells a new shape claims. Their
+    wall votes there come from a part view of the opening -- a van hid the rest, so no detection could close its
+    border -- and a tie with the campaign that saw all of it is no evidence against the shape (issue 18 round 29,
+    dev seed 410: a van hid the lower 1.8 m of a flush door from campaign 1, whose weight-1 wall votes on the top
+    of the leaf tied campaign 2's door votes; the fused door was cut to a 1.6 m window)."""
+    seen_old = (votes.seen - votes.seen_new)[patch][claimed] > 0
+    return bool(seen_old.size) and float(seen_old.mean()) < seen_fraction
 
 
 def _door_verdict_stands(voting: list[Element], fused) -> bool:
