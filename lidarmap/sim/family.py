@@ -16,7 +16,7 @@ from lidarmap.sim.hard import build_hard_city
 from lidarmap.sim.params import SimParams
 
 FAMILIES = ("standard", "hard")
-EVAL_SEEDS = tuple(range(7001, 7241))  # 7011-7020 added 2026-11-26 after 7001-7010 had been measured three times;
+EVAL_SEEDS = tuple(range(7001, 7251))  # 7011-7020 added 2026-11-26 after 7001-7010 had been measured three times;
 #                                       7021-7030 added 2026-11-26 18:05 UTC, before any run, for round 7;
 #                                       7031-7040 added 2026-11-26 20:46 UTC, before any run, for round 8;
 #                                       7041-7050 added 2026-11-27 00:10 UTC, before any run, for round 9;
@@ -38,7 +38,8 @@ EVAL_SEEDS = tuple(range(7001, 7241))  # 7011-7020 added 2026-11-26 after 7001-7
 #                                       7201-7210 added 2026-12-02 21:44 UTC, before any run, for round 25;
 #                                       7211-7220 added 2026-12-03 05:43 UTC, before any run, for round 26;
 #                                       7221-7230 added 2026-12-03 07:57 UTC, before any run, for round 27;
-#                                       7231-7240 added 2026-12-03 11:18 UTC, before any run, for round 28
+#                                       7231-7240 added 2026-12-03 11:18 UTC, before any run, for round 28;
+#                                       7241-7250 added 2026-12-03 14:48 UTC, before any run, for round 29
 DEV_SEEDS = (11, 12, 13)
 
 
