@@ -833,7 +833,7 @@ def _partly_seen_before(votes: _Votes, patch, claimed: np.ndarray, seen_fraction
     border -- and a tie with the campaign that saw all of it is no evidence against the shape (issue 18 round 29,
     dev seed 410: a van hid the lower 1.8 m of a flush door from campaign 1, whose weight-1 wall votes on the top
     of the leaf tied campaign 2's door votes; the fused door was cut to a 1.6 m window)."""
-    seen_old = (votes.seen - votes.seen_new)[patch][claimed] > 0
+    seen_old = (votes.seen[patch] - votes.seen_new[patch])[claimed] > 0  # the patch only: called per opening
     return bool(seen_old.size) and float(seen_old.mean()) < seen_fraction
 
 
