@@ -273,6 +273,8 @@ def print_family_section(args, bench: str, campaigns: int, title: str) -> None:
     """The standard-vs-hard table of ``bench`` (its own heading when it is all the bench prints)."""
     if args.family_only:
         print(f"## {bench}\n")
+    else:
+        print()  # a blank line between the bench's own last table and this section's heading
     runs = run_families(args.eval, args.scenes, campaigns=campaigns)
     print(markdown(runs, args.eval, title=title))
 
