@@ -51,8 +51,8 @@ def existing_sections() -> dict[str, str]:
     return {parts[i]: parts[i + 1].rstrip() + "\n" for i in range(1, len(parts) - 1, 2)}
 
 
-#: Benchmarks scored on the simulator's reserved evaluation seeds (docs/simulator.md) when run from here.
-EVAL_BENCHMARKS = ("bench_facade", "bench_refine")
+#: Benchmarks scored on reserved evaluation seeds (docs/simulator.md, docs/independent_scenes.md) when run from here.
+EVAL_BENCHMARKS = ("bench_facade", "bench_refine", "bench_independent")
 
 
 def run(script: Path) -> str:
