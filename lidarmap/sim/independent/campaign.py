@@ -78,7 +78,8 @@ def campaign_scene(world: World, camp: Campaign):
 
 
 def obs_facades(world: World) -> list[ObsFacade]:
-    return [ObsFacade(f.id, f.frame.o, f.frame.u, f.frame.n, f.width, f.height) for f in world.facades]
+    return [ObsFacade(f.id, f.frame.o, f.frame.u, f.frame.n, f.width, f.height, f.style.get("wall_refl", 0.5))
+            for f in world.facades]
 
 
 # ----------------------------------------------------------------------------------------------------------------------

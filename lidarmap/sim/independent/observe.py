@@ -3,8 +3,12 @@
 A pulse observes a façade cell when, coming from outside (its origin in front of the wall's reference plane,
 heading into it), it crosses the plane inside the cell before anything stopped it: its first hit (sub-ray 0,
 the first surface in its way, leaves included) lies at most ``TOLERANCE`` in front of the plane or behind it, or
-there is none. The tolerance absorbs the wall's lean (up to 0.3 deg) and its relief. Two grids per façade:
-0.2 m cells (openings) and 0.5 m cells (wall area), both anchored at the façade origin.
+there is none. The tolerance absorbs the wall's lean (up to 0.3 deg) and its relief. The pulse must also be one the
+wall would have answered there: with its whole energy on the wall's reflectance at that incidence and range, above
+the scanner's detection threshold (the same rule as the laser physics). A pulse that crosses a far, grazing wall
+too weakly to return from it cannot tell an opening from the wall either: without that rule, windows on a wall
+whose returns stop at some range counted as observed although nothing in the data could show them. Two grids per
+façade: 0.2 m cells (openings) and 0.5 m cells (wall area), both anchored at the façade origin.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ class ObsFacade:
     n: np.ndarray
     width: float
     height: float
+    refl: float = 0.5  # the wall's reflectance
 
     @property
     def shape(self) -> tuple:
@@ -53,7 +58,7 @@ def observe(O: np.ndarray, D: np.ndarray, first_t: np.ndarray, facades: list[Obs
         tc = so[m] / -dn[m]
         with np.errstate(invalid="ignore"):
             reach = so[m] + dn[m] * first_t[m]
-        ok = (tc <= max_range) & ~(reach > TOLERANCE)
+        ok = (tc <= max_range) & ~(reach > TOLERANCE) & wall_detectable(f.refl, -dn[m], tc, max_range)
         m, tc = m[ok], tc[ok]
         c = O[m] + D[m] * tc[:, None]
         s = (c - f.o) @ f.u
@@ -62,6 +67,12 @@ def observe(O: np.ndarray, D: np.ndarray, first_t: np.ndarray, facades: list[Obs
             i, j = np.floor(s / size).astype(np.int64), np.floor(t / size).astype(np.int64)
             inside = (i >= 0) & (j >= 0) & (i < grid.shape[0]) & (j < grid.shape[1])
             grid[i[inside], j[inside]] = True
+
+
+def wall_detectable(refl: float, cos: np.ndarray, rng: np.ndarray, max_range: float) -> np.ndarray:
+    """Whether a whole pulse on the wall (reflectance ``refl``, incidence cosine ``cos``, range ``rng``) returns:
+    the detection rule of physics.combine (reflectance x (0.2 + 0.8 cos) x (max range / r)^2 >= 0.8)."""
+    return refl * (0.2 + 0.8 * cos) * (max_range / np.maximum(rng, 1e-6)) ** 2 >= 0.8
 
 
 def opening_fraction(fine: np.ndarray, rect) -> float:

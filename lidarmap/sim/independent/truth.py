@@ -59,7 +59,7 @@ def facade_entry(world: World, f, grids: dict, keys) -> dict:
 
 
 def _obs(f) -> ObsFacade:
-    return ObsFacade(f.id, f.frame.o, f.frame.u, f.frame.n, f.width, f.height)
+    return ObsFacade(f.id, f.frame.o, f.frame.u, f.frame.n, f.width, f.height, f.style.get("wall_refl", 0.5))
 
 
 def opening_entry(world: World, op, grids: dict, keys) -> dict:
