@@ -585,11 +585,14 @@ def test_hard_family_is_deterministic(hard, tmp_path):
 
 
 def test_tests_never_use_the_evaluation_seeds():
-    reserved = {str(s) for s in EVAL_SEEDS}
-    naming_the_range = re.compile(rf"\b{EVAL_SEEDS[0]}\s*[-–]\s*{EVAL_SEEDS[-1]}\b")  # "reserved: 70..-70.."
-    for path in Path(__file__).parent.glob("*.py"):
-        text = naming_the_range.sub("", path.read_text(encoding="utf-8"))
-        assert not set(re.findall(r"\b\d{4}\b", text)) & reserved, path.name
+    from lidarmap.sim.independent import EVAL_SEEDS as INDEPENDENT_EVAL_SEEDS
+
+    for seeds in (EVAL_SEEDS, INDEPENDENT_EVAL_SEEDS):  # our hard family's and the independent generator's
+        reserved = {str(s) for s in seeds}
+        naming_the_range = re.compile(rf"\b{seeds[0]}\s*[-–]\s*{seeds[-1]}\b")  # "reserved: 70..-70.."
+        for path in Path(__file__).parent.glob("*.py"):
+            text = naming_the_range.sub("", path.read_text(encoding="utf-8"))
+            assert not set(re.findall(r"\b\d{4}\b", text)) & reserved, path.name
 
 
 def test_cli_simulate_rejects_an_unknown_family(tmp_path: Path):

@@ -33,9 +33,11 @@ from lidarmap.facade.evidence import (
     CellEvidence,
     cell_evidence,
     door_leaves,
+    effective_pass_depth,
     local_wall_depth,
     missed_pulse_crossings,
     opening_cells,
+    pulse_gaps_agree,
     recessed_share,
     scanner_heads,
     stray_patches,
@@ -262,6 +264,9 @@ def extract_facade(camp: CampaignData, member_ids: np.ndarray, group: PlaneGroup
     # the frame: d = 0 on the main layer, origin at the bottom-left of its points (robust quantiles)
     s_lo, s_hi = np.quantile(sdt[on_main, 0], [0.001, 0.999])
     t_lo = float(np.quantile(sdt[on_main, 1], 0.001))
+    if params.planes.extent_to_ground:  # the wall's foot, where vehicles hid it (the frame's t is z here)
+        cols = max(1, int(np.ceil((s_hi - s_lo) / cell)))
+        t_lo = min(t_lo, float(_ground_line(camp, frame, s_lo, s_hi, t_lo, cols, cell, params).min()))
     on_any = keep & (assign_layers(sdt[:, 2], layers, params.layers.sigma_k) >= 0)
     t_hi = float(np.quantile(sdt[on_any, 1], 0.999))
     frame = FacadeFrame(origin=frame.to_crs(np.array([[s_lo, t_lo, main.mu]]))[0], u=frame.u)
@@ -420,7 +425,7 @@ def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens:
     # each scanner head against its own wall: crossed heads see a wall point seconds apart (GPS drift between)
     heads = None if surf.gps is None else scanner_heads(surf.sdt, sens_sdt, surf.gps)
     rel = d - local_wall_depth(surf.sdt, s0, params, heads)
-    pass_depth = params.evidence.pass_depth
+    pass_depth = effective_pass_depth(rel[inside], params)
     on_wall = inside & (np.abs(rel) <= pass_depth)
     recessed = inside & (rel < -pass_depth)
     deep = a_sdt[:, 2] < -params.layers.layer_back
@@ -438,6 +443,8 @@ def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens:
                        missed if missed is not None else (np.zeros(0),) * 3, shape, s0, t0, cell,
                        front_sdt=surf.sdt[inside & (rel > pass_depth) & (d < params.occlusion.occluder_min_depth)])
     ev.pulse_order = missed is not None
+    if ev.pulse_order and not pulse_gaps_agree(ev, params):
+        ev.missed = np.zeros_like(ev.missed)  # the gaps are no missed pulses here: returns behind the wall only
     ev.offset, ev.offset_n = wall_offset(surf.sdt[inside, 0], surf.sdt[inside, 1], rel[inside], shape, s0, t0,
                                          cell, params.evidence.leaf_band)
     return ev, recessed

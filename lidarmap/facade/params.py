@@ -72,6 +72,11 @@ class PlaneParams:
         False: every façade holds them. Buildings whose footprint was derived from the points (docs/mls.md: grid
         cells, edges that do not follow the walls) always run with False.
     facade_margin (0.3): points up to this beyond a façade's ends still belong to it.
+    extent_to_ground (True): a new façade's extent starts at the ground in front of it (the lowest height of its
+        ground line, :func:`lidarmap.facade.observe._ground_line`) when that lies below its lowest wall return: a
+        row of parked vans hides the foot of a wall, and a door whose lowest 0.35 m lay below the lowest wall
+        return was cut at the grid's bottom and typed a window (independent dev seed 8). False: the extent starts
+        at the lowest wall return, as the paper's frame.
     """
 
     constraints: ClassVar[dict[str, str]] = {
@@ -112,6 +117,7 @@ class PlaneParams:
     edge_angle_deg: float = 10.0
     openings_need_edge: bool = True
     facade_margin: float = 0.3
+    extent_to_ground: bool = True
 
     def __post_init__(self) -> None:
         check_params(self)
@@ -463,15 +469,32 @@ class EvidenceParams:
         paper's rule (every reachable, unoccluded cell without a return is a hole).
     pass_depth (0.02): returns more than this behind the local wall passed the wall plane (glass, curtains 3-20 cm
         behind it count; range noise of 1 cm does not).
-    wall_band (0.1), wall_block (1.0): the local wall depth is the median depth of the points within wall_band of
-        the plane per wall_block metres along it (a wall bowing or drifting by cm is not glass).
-    wall_mode_bin (0.005): with two crossed scanner heads, each head's wall per block is the front-most peak of a
-        histogram of its depths in bins of this size (m), smoothed over 5 bins (2.5 cm, about the range noise) ...
-    wall_neighbour_blocks (2): ... and lies at most pass_depth behind the median of the head's walls in the blocks
-        within this many blocks of it (a garage door filling a block's wall band is no wall; 0: no such check).
+    pass_noise_k (2.0): ... or this many times the wall's own depth scatter when that is larger (robust σ of the
+        returns near the local wall: range noise and relief; :func:`lidarmap.facade.evidence.effective_pass_depth`;
+        0: pass_depth alone). A brick wall scanned with 1.5 cm noise scatters by 2-3 cm, and a fifth of its returns
+        lay 2 cm behind it.
+    wall_band (0.1), wall_block (1.0): the local wall depth is taken from the points within wall_band of the plane,
+        per wall_block metres along it (a wall bowing or drifting by cm is not glass) ...
+    wall_tilt (True): ... measured from the wall's robust tilted plane (depth = a + b s + c t, Tukey-weighted fit of
+        the points within wall_band; :func:`lidarmap.facade.evidence.wall_tilt`): a wall 0.3° out of plumb is 8 cm
+        deeper at a 16 m eave than at its foot, and a block of s cannot follow a depth that changes with height ...
+    wall_max_tilt (0.02): ... whose slopes along s and t are at most this (m per m, 1.1°): a façade mostly of glass
+        cannot tip the plane into the glass.
+    wall_mode_bin (0.005): ... and there, per block (per scanner head with two crossed heads), the wall is the peak
+        of the histogram of the depths in bins of this size (m), smoothed over 5 bins (2.5 cm, about the range
+        noise), among those of at least half the highest, nearest the façade-wide wall (the front-most such peak of
+        all the façade's depths) ...
+    wall_neighbour_blocks (2), wall_neighbour_tol (0.01): ... and lies within wall_neighbour_tol of the median of
+        the walls in the blocks within wall_neighbour_blocks of it, else it is that median (a garage door filling a
+        block's wall band is no wall, nor a pilaster in front of it; the GPS drift moves the wall by mm between
+        neighbouring blocks; 0 blocks: no such check).
     max_missed_pulses (150): longer runs of pulses without return in one scan line are not reconstructed (the
         line left the façade: sky, far away).
     missed_max_incidence_deg (75.0): pulses this grazing to the wall may return nothing from a wall: no evidence.
+    missed_max_wall_ratio (0.2): a façade's missed pulses are used only where they agree with its returns: on the
+        cells with at least 3 wall returns they make at most this share of the pulses
+        (:func:`lidarmap.facade.evidence.pulse_gaps_agree`; a rotating multi-beam scanner's gaps in time order are
+        other lasers, not missed pulses: 30-69 % there). 1: always used.
     min_pass_pulses (1): a cell is an opening cell with at least this many pulses through the plane ...
     max_wall_share (0.45): ... and at most this share of its pulses returned from the wall (a flush door leaf
         2-3 cm back with 1 cm range noise returns a third of its pulses within pass_depth of the wall).
@@ -507,12 +530,16 @@ class EvidenceParams:
 
     constraints: ClassVar[dict[str, str]] = {
         "pass_depth": ">= 0",
+        "pass_noise_k": ">= 0",
         "wall_band": "> 0",
         "wall_block": "> 0",
+        "wall_max_tilt": ">= 0",
         "wall_mode_bin": "> 0",
         "wall_neighbour_blocks": ">= 0",
+        "wall_neighbour_tol": ">= 0",
         "max_missed_pulses": ">= 0",
         "missed_max_incidence_deg": "[0, 90]",
+        "missed_max_wall_ratio": "[0, 1]",
         "min_pass_pulses": ">= 1",
         "max_wall_share": "[0, 1]",
         "evidence_grow_cells": ">= 0",
@@ -528,12 +555,17 @@ class EvidenceParams:
 
     ray_evidence: bool = True
     pass_depth: float = 0.02
+    pass_noise_k: float = 2.0
     wall_band: float = 0.1
     wall_block: float = 1.0
+    wall_tilt: bool = True
+    wall_max_tilt: float = 0.02
     wall_mode_bin: float = 0.005
     wall_neighbour_blocks: int = 2
+    wall_neighbour_tol: float = 0.01
     max_missed_pulses: int = 150
     missed_max_incidence_deg: float = 75.0
+    missed_max_wall_ratio: float = 0.2
     min_pass_pulses: int = 1
     max_wall_share: float = 0.45
     evidence_grow_cells: int = 2
