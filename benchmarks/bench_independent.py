@@ -22,6 +22,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from multiprocessing import get_context
 from pathlib import Path
@@ -45,7 +46,10 @@ def parse_seeds(text: str) -> list[int]:
 def _cli(*args: str) -> float:
     start = time.perf_counter()
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    done = subprocess.run([sys.executable, "-m", "lidarmap", "-q", *args], capture_output=True, text=True, env=env)
+    # run outside the checkout: with -m the working directory comes first on sys.path (PYTHONPATH could not
+    # point at another checkout to measure a baseline)
+    done = subprocess.run([sys.executable, "-m", "lidarmap", "-q", *args], capture_output=True, text=True, env=env,
+                          cwd=tempfile.gettempdir())
     if done.returncode != 0:
         raise RuntimeError(f"lidarmap {' '.join(args)}: {done.stderr.strip() or done.stdout.strip()}")
     return time.perf_counter() - start
@@ -217,6 +221,8 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"reserved {family} seeds need --eval (figures only)")
         jobs += [(family, s, args.work) for s in seeds]
     Path(args.work).mkdir(parents=True, exist_ok=True)
+    for family, seed, work in jobs:  # here: the generator runs its own worker processes, which pool workers can't
+        generate(family, seed, Path(work))
     with get_context("spawn").Pool(args.jobs) as pool:
         records = pool.map(_job, jobs, chunksize=1)
     for r in records:
