@@ -205,6 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", default="1-4", help="development seeds (ranges like 1-4,9)")
     ap.add_argument("--eval", action="store_true", help="the first --scenes reserved seeds of each family")
     ap.add_argument("--scenes", type=int, default=6)
+    ap.add_argument("--skip", type=int, default=0,
+                    help="with --eval: leave out the first SKIP reserved seeds (measured by an earlier round: a new "
+                    "rule is judged on scenes no earlier figure has seen)")
     ap.add_argument("--families", default="independent,hard",
                     help="comma-separated: independent (the scenes under test), hard / standard (our own simulator "
                     "through the same command line and scorer: the baseline)")
@@ -216,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     jobs = []
     for family in families:
         reserved = _eval_seeds(family)
-        seeds = list(reserved[:args.scenes]) if args.eval else parse_seeds(args.seeds)
+        seeds = list(reserved[args.skip:args.skip + args.scenes]) if args.eval else parse_seeds(args.seeds)
         if not args.eval and set(seeds) & set(reserved):
             ap.error(f"reserved {family} seeds need --eval (figures only)")
         jobs += [(family, s, args.work) for s in seeds]

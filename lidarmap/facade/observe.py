@@ -79,9 +79,12 @@ from lidarmap.facade.openings import (
     OBJECT,
     OCCLUDED,
     Opening,
+    WallDepths,
     complete_by_repetition,
     detect_openings,
     fit_rectangle,
+    glazed_doors,
+    inside_structures,
     refine_bounds,
     window_uncertainty_eq3,
 )
@@ -410,6 +413,7 @@ class _Visibility:
     behind: np.ndarray | None = None  # per point of the surface: more than pass_depth behind the local wall
     set_back: np.ndarray | None = None  # cells whose returns lie on average a leaf's offset behind the wall
     guessed: np.ndarray | None = None  # observed cells without a return that a coarse closing filled: no wall vote
+    depths: WallDepths | None = None  # per cell the returns' mean depth relative to the local wall (ray evidence)
 
 
 def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens: np.ndarray, around: np.ndarray,
@@ -477,6 +481,11 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
     raw = surf.observed_raw
     lowest = np.where(raw.any(axis=0), t0 + np.argmax(raw, axis=0) * cell, np.inf)
     ground_t = np.minimum(ground_t, lowest)
+    # nor far below the grid's bottom: a new façade's grid starts at its ground line (extent_to_ground), so a later,
+    # sparser campaign's ground points far below it are no street (a light well, a lower terrace, the height rule's
+    # ground on a raw campaign: 1.1 m below a door that campaign 1 had stored, which campaign 2 then retyped a
+    # window; issue 18 round 31, independent dev seed 2)
+    ground_t = np.maximum(ground_t, t0 - params.openings.ground_below_grid)
     no_cells = np.zeros(shape, dtype=bool)
     leaves, crossed_leaf = door_leaves(ev, passed, ground_t, t0, cell, params) if ray else (no_cells, no_cells)
     passed = passed | leaves | crossed_leaf
@@ -508,7 +517,8 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
         opaque[leaves] = 1.0  # a leaf returns every pulse, a few on the wall's side of pass_depth
     return _Visibility(values=values, ground_t=ground_t, below=below, unsampled=unsampled, weights=weights,
                        opaque=opaque, leaves=leaves, behind=behind_pts if ray else None,
-                       set_back=_set_back_cells(ev, params) if ray else None, guessed=guessed)
+                       set_back=_set_back_cells(ev, params) if ray else None, guessed=guessed,
+                       depths=WallDepths(ev.offset, ev.offset_n, leaves) if ray and ev.offset is not None else None)
 
 
 def _set_back_cells(ev: CellEvidence, params: FacadeParams) -> np.ndarray | None:
@@ -607,6 +617,16 @@ def _layer_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: 
     vis.values[found.door_cells] = OBJECT  # a door leaf is not a hole of the wall for the window search
 
 
+def _front_cells(surf: _Surface, depth: float, max_sigma: float = math.inf) -> np.ndarray:
+    """The cells whose dominant layer lies more than ``depth`` in front of the wall, that layer's σ at most
+    ``max_sigma``."""
+    front = np.zeros(surf.shape, dtype=bool)
+    for li, layer in enumerate(surf.layers):
+        if layer.mu - surf.main.mu > depth and layer.sigma <= max_sigma:
+            front |= surf.dominant == li
+    return front
+
+
 def _hole_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: FacadeParams) -> None:
     """Step "openings": holes of the value grid -> windows/doors (eq. 3) or unknown regions, then the occluded
     regions as unknown regions."""
@@ -635,16 +655,20 @@ def _hole_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: F
             # 2.10 m tall measured 1.90 m and was typed a window (issue 18 round 21, dev seeds 307 and 314)
             not_wall[inside] |= vis.set_back[row[inside], col[inside]] & hole_cell
         wall_st = wall_st[~not_wall]
-    front = None  # cells of layers in front of the wall (balconies, their parapets): only the parapet rule reads them
-    if params.openings.complete_behind_structures:
-        front = np.zeros(surf.shape, dtype=bool)
-        for li, layer in enumerate(surf.layers):
-            if layer.mu - surf.main.mu > params.layers.structure_min_offset:
-                front |= surf.dominant == li
+    front = _front_cells(surf, params.layers.structure_min_offset)  # balconies, their parapets
     openings = detect_openings(vis.values, cell, params, ground_t=vis.ground_t, t0=t0, s0=s0, wall_st=wall_st,
-                               opaque=vis.opaque, front=front)
+                               opaque=vis.opaque, front=front if params.openings.complete_behind_structures else None)
     if params.openings.complete_by_repetition:
         complete_by_repetition(openings, vis.values, s0, t0, cell, params)
+    # oriels and bay windows stand well proud of the wall, a plane; a wall the layer fit split in two (relief, a lean)
+    # does not, nor the clutter of shrubs and railings a broad layer gathers
+    op = params.openings
+    inside_structures(openings, _front_cells(surf, op.inside_structure_depth, op.inside_structure_sigma), params)
+    if vis.depths is not None:
+        for _, cells in glazed_doors(openings, vis.values, vis.depths, vis.ground_t, s0, t0, cell, params):
+            # the leaf around the pane is no wall: the door's cells vote for it, none against
+            found.window_votes[cells] = vis.weights[cells]
+            found.door_cells |= cells
     for op in openings:
         if op.kind in (ElementKind.WINDOW, ElementKind.DOOR) and op.bounds is not None:
             b_s0, b_s1, b_t0, b_t1 = op.bounds
@@ -762,8 +786,14 @@ def _ground_line(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, t
         low = np.median(np.stack([padded[:-2], padded[1:-1], padded[2:]]), axis=0)
     centres = s0 + (uniq + 0.5) * params.openings.ground_bin
     line = np.interp(s_mid, centres, low)
-    if len(low) >= 2:  # beyond the first and last of those bins the street keeps its slope
+    if len(low) >= 2:  # beyond the first and last of those bins the street keeps its slope ...
         slope, intercept = np.polyfit(centres, low, 1)
+        # ... no steeper than a street: two bins of a sparse campaign 1 m apart, one on a step, gave a slope of 0.3
+        # and put the ground 1.1 m below a door 5 m on, a window (issue 18 round 31, independent dev seed 2)
+        limit = params.openings.ground_max_slope
+        if abs(slope) > limit:
+            slope = math.copysign(limit, slope)
+            intercept = float(np.mean(low - slope * centres))
         outside = (s_mid < centres[0]) | (s_mid > centres[-1])
         line[outside] = intercept + slope * s_mid[outside]
     return line

@@ -330,6 +330,8 @@ class OpeningParams:
         they measure 1.9 m: at 1.9 four of them were doors on dev seed 21) ...
     door_max_height (3.0): ... and a door's top lies at most this far above the ground line (only for
         hidden_bottom_unknown) ...
+    door_tallest (2.9): ... and a door is at most this tall (garage doors 2.8 m; a taller opening is a shop window
+        or a glazed front, whatever closes it) ...
     hidden_bottom_unknown (True): a window whose cells down to the ground line were not observed (a parked car
         or van in front, no wall row seen between), and that would be door-sized if it reached the ground, is an
         UNKNOWN region: the top of a door and the top of a window look alike; another campaign sees the rest ...
@@ -342,12 +344,34 @@ class OpeningParams:
     ground_min_points (10): ... from bins holding at least this many ground points; the others take the height
         of their neighbours (a street hidden by parked cars left bins of 1-8 points labelled ground at 4-12 m:
         a window on the first floor above them became a door, dev seed 136).
+    ground_max_slope (0.1): ... beyond the first and last such bins the line goes on at its fitted slope, at most
+        this steep (a street's gradient; two bins of a sparse campaign gave 0.3) ...
+    ground_below_grid (0.15): ... and never lies more than this below the façade grid's bottom (a new façade's grid
+        starts at its ground line: a later campaign's ground points far below it are a light well or a lower
+        terrace, not the street in front of its doors; a large value turns this off) ...
     door_min_width (0.7): ... and at least this wide (a door leaf with its frame; tall narrow windows on a low sill
         are windows), unless a side ends at cells the campaign did not see (most of the enclosed_reach_cells
         columns beyond it occluded: a van hid the rest) ...
     door_max_width (3.5): ... and at most this wide (shop windows and glazed fronts are wider: windows) ...
     open_door_max_width (1.8): ... and wider than this only when closed by an opaque leaf (garage doors; glazed
         shop fronts 2-4 m wide with a sill near the ground let most pulses through: windows).
+    inside_structure_max (0.5): a window or door more than this share of whose hole cells lie where a layer in front
+        of the wall was seen (an oriel, a bay window: the wall plane is open behind it) is an unknown region
+        (:func:`lidarmap.facade.openings.inside_structures`); 1 turns this off ...
+    inside_structure_depth (0.2): ... layers more than this in front of the wall count (an oriel stands 0.3 m
+        and more proud; the two layers a rough or leaning wall may split into lie a few cm apart: at 5 cm, every
+        window of one façade became unknown, independent dev seed 8) ...
+    inside_structure_sigma (0.04): ... and whose σ is at most this: an oriel's face is a plane (σ 1-2 cm); a broad
+        layer of clutter in front (σ 0.4 m: shrubs, railings) covered three windows of hard dev seed 410.
+    glazed_doors (True): a window whose bottom lies glazed_sill_min .. glazed_sill_max above the ground line and
+        whose top a door's height (door_min_height .. door_max_height), no wider than open_door_max_width, is the
+        pane of a glazed door when the cells below it down to the ground line lie behind the wall beside them
+        (evidence.leaf_offset): it becomes a door reaching the ground line, grown by the leaf around the pane
+        (:func:`lidarmap.facade.openings.glazed_doors`) ...
+    glazed_sill_min (0.5), glazed_sill_max (1.6): ... (a pane starts 1.0-1.2 m above the threshold, up to 0.5 m of
+        steps above the street) ...
+    glazed_frame_max (0.3): ... the leaf around the pane is at most this wide, and two panes at most this far
+        apart with tops as close are one double door.
     recessed_windows (False): a rectangular region of a recessed layer (fill >= Ta, opening-sized) that is not a
         door is a WINDOW (glass with blinds or curtains returns the laser a few cm to dm behind the wall);
         False keeps it a STRUCTURE.
@@ -364,6 +388,9 @@ class OpeningParams:
         wall along shadow edges).
     bridge_cells (2): hole parts separated by up to 2*bridge_cells occluded cells (a pole or trunk in front
         of a window) are one opening candidate.
+    split_bridged (True): a region joined across occluded cells that is no opening as a whole (it touches the
+        grid's border, its fill is too low) is tried again as its hole parts, each on its own (a shadow band along
+        the ground joined a door with fragments reaching the façade's end).
     occlusion_grow_cells (1): the occlusion mask grows by this many cells into unobserved cells (the last
         unobserved cells at a shadow's edge are ambiguous, not holes).
     min_unknown_area (0.1): smaller occluded regions are not reported as UNKNOWN elements.
@@ -394,8 +421,11 @@ class OpeningParams:
         "ground_band": ">= 0",
         "ground_bin": ">= 0",
         "ground_min_points": ">= 1",
+        "ground_max_slope": ">= 0",
+        "ground_below_grid": ">= 0",
         "door_min_height": ">= 0",
         "door_max_height": ">= 0",
+        "door_tallest": ">= 0",
         "hidden_bottom_min_height": ">= 0",
         "hole_open_cells": ">= 0",
         "bridge_cells": ">= 0",
@@ -404,6 +434,12 @@ class OpeningParams:
         "door_min_width": ">= 0",
         "open_door_max_width": ">= 0",
         "repetition_tol": ">= 0",
+        "glazed_sill_min": ">= 0",
+        "inside_structure_max": "[0, 1]",
+        "inside_structure_depth": ">= 0",
+        "inside_structure_sigma": ">= 0",
+        "glazed_sill_max": ">= 0",
+        "glazed_frame_max": ">= 0",
         "behind_structure_reach": ">= 0",
         "min_unknown_area": ">= 0",
     }
@@ -433,16 +469,27 @@ class OpeningParams:
     ground_band: float = 4.0
     ground_bin: float = 1.0
     ground_min_points: int = 10
+    ground_max_slope: float = 0.1
+    ground_below_grid: float = 0.15
     door_min_height: float = 1.95
     door_max_height: float = 3.0
+    door_tallest: float = 2.9
     hidden_bottom_unknown: bool = True
     hidden_bottom_min_height: float = 1.2
     hole_open_cells: int = 1
     bridge_cells: int = 2
+    split_bridged: bool = True
     occlusion_grow_cells: int = 1
     door_max_width: float = 3.5
     door_min_width: float = 0.7
     open_door_max_width: float = 1.8
+    inside_structure_max: float = 0.5
+    inside_structure_depth: float = 0.2
+    inside_structure_sigma: float = 0.04
+    glazed_doors: bool = True
+    glazed_sill_min: float = 0.5
+    glazed_sill_max: float = 1.6
+    glazed_frame_max: float = 0.3
     recessed_windows: bool = False
     complete_by_repetition: bool = True
     complete_behind_structures: bool = True
