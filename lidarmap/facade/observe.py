@@ -24,6 +24,7 @@ import math
 import time
 
 import numpy as np
+import shapely
 from scipy import ndimage
 from shapely.geometry import box
 
@@ -416,11 +417,19 @@ class _Visibility:
     depths: WallDepths | None = None  # per cell the returns' mean depth relative to the local wall (ray evidence)
 
 
+def _near_footprint(xyz: np.ndarray, polygon, margin: float) -> np.ndarray:
+    """Which points lie within ``margin`` of the footprint ``polygon`` (all of them without one)."""
+    if polygon is None or not len(xyz):
+        return np.ones(len(xyz), dtype=bool)
+    return shapely.contains_xy(shapely.buffer(polygon, margin), xyz[:, 0], xyz[:, 1])
+
+
 def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens: np.ndarray, around: np.ndarray,
-                  ground_ids: np.ndarray, frame: FacadeFrame,
-                  params: FacadeParams) -> tuple[CellEvidence, np.ndarray]:
+                  ground_ids: np.ndarray, frame: FacadeFrame, params: FacadeParams,
+                  polygon=None) -> tuple[CellEvidence, np.ndarray]:
     """Pulses per cell on the wall, through it and missed (:mod:`lidarmap.facade.evidence`), and which points of
-    the surface lie more than ``pass_depth`` behind the local wall."""
+    the surface lie more than ``pass_depth`` behind the local wall. Returns farther behind count only near the
+    building's ``polygon`` (``behind_footprint_margin``)."""
     shape, cell = surf.shape, surf.cell
     s0, t0 = surf.extent[0], surf.extent[2]
     d = surf.sdt[:, 2]
@@ -433,6 +442,8 @@ def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens:
     on_wall = inside & (np.abs(rel) <= pass_depth)
     recessed = inside & (rel < -pass_depth)
     deep = a_sdt[:, 2] < -params.layers.layer_back
+    if params.evidence.behind_near_footprint:
+        deep[deep] = _near_footprint(camp.xyz[around[deep]], polygon, params.evidence.behind_footprint_margin)
     behind_sdt = np.concatenate([surf.sdt[recessed], a_sdt[deep]])
     behind_sens = np.concatenate([sens_sdt[recessed], a_sens[deep]])
     is_deep = np.r_[np.zeros(int(recessed.sum()), bool), np.ones(int(deep.sum()), bool)]
@@ -455,7 +466,7 @@ def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens:
 
 
 def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: FacadeParams,
-                rng: np.random.Generator) -> _Visibility:
+                rng: np.random.Generator, polygon=None) -> _Visibility:
     """Step "occlusion": shadows of the points in front, cells the laser went through (ray evidence, or the
     paper's rule: every reachable unobserved cell), the scanner's reach and the ground line give the value grid
     (hole / occluded / object)."""
@@ -469,7 +480,7 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
     behind = a_sdt[:, 2] < -params.layers.layer_back
     through = through_cells(a_sdt[behind], a_sens[behind], shape, s0, t0, cell) > 0
     reachable = reach_mask(frame.to_facade(camp.track), shape, s0, t0, cell, camp.limits, params)
-    ev, behind_pts = _ray_evidence(camp, surf, a_sdt, a_sens, around, ground_ids, frame, params)
+    ev, behind_pts = _ray_evidence(camp, surf, a_sdt, a_sens, around, ground_ids, frame, params, polygon)
     ray = params.evidence.ray_evidence and ev.pulse_order  # without per-pulse times: the paper's rule
     if params.evidence.ray_evidence and not ev.pulse_order and camp.source not in _WARNED_SOURCES:
         _WARNED_SOURCES.add(camp.source)
@@ -477,10 +488,14 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
                     "from unobserved cells (the paper's rule)", camp.source or "campaign")
     passed = opening_cells(ev, params) if ray else through
     ground_t = _ground_line(camp, frame, s0, s1, t0, shape[1], cell, params)
-    # the ground is never above the lowest wall measured in a column
+    # the ground is never above the lowest return measured in a column ...
     raw = surf.observed_raw
-    lowest = np.where(raw.any(axis=0), t0 + np.argmax(raw, axis=0) * cell, np.inf)
-    ground_t = np.minimum(ground_t, lowest)
+    ground_t = np.minimum(ground_t, _lowest(raw, t0, cell))
+    if params.openings.landings:  # ... except a landing, on which returns lie: never above the lowest wall return
+        in_front = np.concatenate([a_sdt, frame.to_facade(camp.xyz[ground_ids])])
+        landing = np.minimum(_landings(in_front, ground_t, s0, cell, params),
+                             _lowest(surf.dominant == surf.main_idx, t0, cell))
+        ground_t = np.maximum(ground_t, landing)
     # nor far below the grid's bottom: a new façade's grid starts at its ground line (extent_to_ground), so a later,
     # sparser campaign's ground points far below it are no street (a light well, a lower terrace, the height rule's
     # ground on a raw campaign: 1.1 m below a door that campaign 1 had stored, which campaign 2 then retyped a
@@ -521,6 +536,52 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
                        depths=WallDepths(ev.offset, ev.offset_n, leaves) if ray and ev.offset is not None else None)
 
 
+def _lowest(cells: np.ndarray, t0: float, cell: float) -> np.ndarray:
+    """Per column the bottom of its lowest marked cell (inf: none)."""
+    return np.where(cells.any(axis=0), t0 + np.argmax(cells, axis=0) * cell, np.inf)
+
+
+def _landings(sdt: np.ndarray, ground_t: np.ndarray, s0: float, cell: float, params: FacadeParams) -> np.ndarray:
+    """Per grid column the top of a flight of steps' landing in front of the wall (``landings`` in the params),
+    -inf where there is none. Per bin of ``_LANDING_BIN`` along the wall, the highest return ``landing_min_depth``
+    .. ``landing_max_depth`` in front of the wall and ``landing_min_rise`` .. ``landing_max_rise`` above the ground
+    line, with no such return over the metre above it (a van, a bin, a planter's plants stand taller) and fewer than
+    3 returns at its height 0.3-1.2 m farther out (a pavement a curb above the road goes on: independent dev seed
+    7); in runs of such bins (one bin without returns does not end a run) at least ``landing_min_width`` long, the
+    run's top is the 80th percentile of theirs (the landing is the highest tread; a few returns on a lower one)."""
+    op = params.openings
+    cols = len(ground_t)
+    per = max(1, int(round(_LANDING_BIN / cell)))
+    bins = (cols + per - 1) // per
+    col = np.floor((sdt[:, 0] - s0) / cell).astype(np.int64)
+    ok = (col >= 0) & (col < cols) & (sdt[:, 2] >= op.landing_min_depth) & (sdt[:, 2] <= op.landing_max_depth)
+    col, t = col[ok], sdt[ok, 1]
+    rise = t - ground_t[col]
+    tread = (rise >= op.landing_min_rise) & (rise <= op.landing_max_rise)
+    top = np.full(bins, -np.inf)
+    np.maximum.at(top, col[tread] // per, t[tread])
+    over = (t > top[col // per] + 0.15) & (t < top[col // per] + 1.0)
+    # a pavement a curb above the road goes on at its height beyond the treads: no landing
+    far = np.abs(sdt[:, 2] - op.landing_max_depth - 0.75) <= 0.45
+    far_col = np.floor((sdt[far, 0] - s0) / cell).astype(np.int64) // per
+    inside = (far_col >= 0) & (far_col < bins)
+    far_col, far_t = far_col[inside], sdt[far, 1][inside]
+    level = np.abs(far_t - top[far_col]) <= 0.06
+    found = np.isfinite(top) & (np.bincount(col[over] // per, minlength=bins) <= 1) \
+        & (np.bincount(far_col[level], minlength=bins) < 3)
+    labels, n = ndimage.label(ndimage.binary_closing(np.pad(found, 1), structure=np.ones(3, bool))[1:-1])
+    out = np.full(bins, -np.inf)
+    for k in range(1, n + 1):
+        run = labels == k
+        if run.sum() * per * cell >= op.landing_min_width:
+            out[run] = float(np.quantile(top[run & found], 0.8))
+    return np.repeat(out, per)[:cols]
+
+
+#: bin length (m) along the wall in which :func:`_landings` takes one top (a tread's returns are sparse)
+_LANDING_BIN = 0.2
+
+
 def _set_back_cells(ev: CellEvidence, params: FacadeParams) -> np.ndarray | None:
     """Cells whose returns near the wall (``leaf_band``) lie on average more than ``leaf_offset`` behind it, two
     returns or more (the mean of two 1 cm range errors passes 1.2 cm in about one cell in twenty): a flush leaf,
@@ -539,6 +600,7 @@ class _Elements:
         self.items: list[Element] = []
         self.window_votes = np.zeros(shape, dtype=np.int32)
         self.door_cells = np.zeros(shape, dtype=bool)  # recessed doors/windows: openings with a surface
+        self.front_cells = np.zeros(shape, dtype=bool)  # holes of the wall a structure in front explains
 
     def add(self, kind: ElementKind, poly, layer_id, unc: float, n: int = 0, undecided: bool = False) -> None:
         self.items.append(Element(element_id=len(self.items), kind=kind, polygon=poly, layer_id=layer_id,
@@ -663,7 +725,11 @@ def _hole_elements(surf: _Surface, vis: _Visibility, found: _Elements, params: F
     # oriels and bay windows stand well proud of the wall, a plane; a wall the layer fit split in two (relief, a lean)
     # does not, nor the clutter of shrubs and railings a broad layer gathers
     op = params.openings
-    inside_structures(openings, _front_cells(surf, op.inside_structure_depth, op.inside_structure_sigma), params)
+    for turned in inside_structures(openings, _front_cells(surf, op.inside_structure_depth,
+                                                           op.inside_structure_sigma), params):
+        # the campaign saw the oriel there, no window of the wall: a vote against a later campaign whose layer fit
+        # did not separate the oriel (independent dev seed 1: three oriel "windows" came with campaign 3 alone)
+        found.front_cells |= turned.mask
     if vis.depths is not None:
         for _, cells in glazed_doors(openings, vis.values, vis.depths, vis.ground_t, s0, t0, cell, params):
             # the leaf around the pane is no wall: the door's cells vote for it, none against
@@ -693,7 +759,11 @@ def _observation(frame: FacadeFrame, surf: _Surface, vis: _Visibility, found: _E
     s0, s1, t0, t1 = surf.extent
     seen = (vis.values != OCCLUDED).astype(np.int32)
     # a wall the campaign only guessed between sparse scan lines is no vote against another campaign's opening
-    voting = (vis.values == OBJECT) & ~found.door_cells & ~vis.guessed
+    voting = ((vis.values == OBJECT) | found.front_cells) & ~found.door_cells & ~vis.guessed
+    if vis.set_back is not None:
+        # returns a leaf's offset behind the wall: a flush door this campaign did not make out is no vote against
+        # the door another campaign found (independent dev seed 6: campaign 2 deleted a double door up three steps)
+        voting &= ~vis.set_back
     object_votes = np.where(voting, vis.weights, 0).astype(np.int32)
     edge = match_footprint_edge(frame, (s0, s1), polygon, params)[0] if polygon is not None else None
     items, window_votes = found.items, found.window_votes
@@ -744,7 +814,7 @@ def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, 
     clock = _timed(tm, "layers", clock)
     if surf is None or not _surface_grid(surf, params):
         return None
-    vis = _visibility(camp, frame, surf, params, rng)
+    vis = _visibility(camp, frame, surf, params, rng, polygon)
     clock = _timed(tm, "occlusion", clock)
     found = _Elements(campaign_id, surf.shape)
     _layer_elements(surf, vis, found, params, rng)

@@ -349,20 +349,20 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
     return out
 
 
-def inside_structures(openings: list[Opening], front: np.ndarray, params: FacadeParams) -> int:
+def inside_structures(openings: list[Opening], front: np.ndarray, params: FacadeParams) -> list[Opening]:
     """Windows and doors whose hole cells lie mostly (more than ``inside_structure_max`` of them) where a layer in
     front of the wall was seen (``front``: an oriel, a bay window) become unknown regions without window evidence,
-    in place; returns how many. The wall plane is open behind an oriel, whose own windows let the pulses cross it,
+    in place; returns them. The wall plane is open behind an oriel, whose own windows let the pulses cross it,
     so the oriel's floors read as holes of the wall: no window of the wall (issue 18 round 31, independent dev
     scenes: 5 of the 33 false openings after three campaigns). A window behind a balcony is seen over the
     parapet, through cells no layer in front covers."""
-    done = 0
+    turned = []
     for o in openings:
         if o.kind in (ElementKind.WINDOW, ElementKind.DOOR) and o.mask.any() \
                 and float(front[o.mask].mean()) > params.openings.inside_structure_max:
             o.kind, o.rect, o.bounds = ElementKind.UNKNOWN, None, None
-            done += 1
-    return done
+            turned.append(o)
+    return turned
 
 
 def _hole_parts(region: np.ndarray, mask: np.ndarray) -> list[np.ndarray]:

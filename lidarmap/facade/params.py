@@ -349,6 +349,13 @@ class OpeningParams:
     ground_below_grid (0.15): ... and never lies more than this below the façade grid's bottom (a new façade's grid
         starts at its ground line: a later campaign's ground points far below it are a light well or a lower
         terrace, not the street in front of its doors; a large value turns this off) ...
+    landings (True): the ground line rises to the landing of a flight of steps in front of the wall: a top surface
+        landing_min_rise .. landing_max_rise (0.1, 0.7) above the street, of returns landing_min_depth ..
+        landing_max_depth (0.08, 0.45) in front of the wall, with nothing in front over the 1 m above it, and at
+        least landing_min_width (0.8) along the wall; never above the lowest wall return of a column (a window's
+        sill, a planter, a window box hang on a wall seen below them). A door up three steps starts 0.5 m above
+        the street, on its landing: measured from the street it read as a window (issue 18 round 32, independent
+        dev seeds 4, 5 and 6: four doors).
     door_min_width (0.7): ... and at least this wide (a door leaf with its frame; tall narrow windows on a low sill
         are windows), unless a side ends at cells the campaign did not see (most of the enclosed_reach_cells
         columns beyond it occluded: a van hid the rest) ...
@@ -423,6 +430,11 @@ class OpeningParams:
         "ground_min_points": ">= 1",
         "ground_max_slope": ">= 0",
         "ground_below_grid": ">= 0",
+        "landing_min_rise": ">= 0",
+        "landing_max_rise": ">= 0",
+        "landing_min_depth": ">= 0",
+        "landing_max_depth": ">= 0",
+        "landing_min_width": ">= 0",
         "door_min_height": ">= 0",
         "door_max_height": ">= 0",
         "door_tallest": ">= 0",
@@ -471,6 +483,12 @@ class OpeningParams:
     ground_min_points: int = 10
     ground_max_slope: float = 0.1
     ground_below_grid: float = 0.15
+    landings: bool = True
+    landing_min_rise: float = 0.1
+    landing_max_rise: float = 0.7
+    landing_min_depth: float = 0.12
+    landing_max_depth: float = 0.45
+    landing_min_width: float = 0.8
     door_min_height: float = 1.95
     door_max_height: float = 3.0
     door_tallest: float = 2.9
@@ -542,6 +560,12 @@ class EvidenceParams:
         cells with at least 3 wall returns they make at most this share of the pulses
         (:func:`lidarmap.facade.evidence.pulse_gaps_agree`; a rotating multi-beam scanner's gaps in time order are
         other lasers, not missed pulses: 30-69 % there). 1: always used.
+    behind_near_footprint (True), behind_footprint_margin (1.0): a return more than layer_back behind the wall
+        counts as a pulse through it only within this distance (m) of the building's footprint: a pulse that
+        crossed a window returns from the rooms. A specular reflection off a neighbour's glass returns from wherever
+        the mirrored ray ends, placed on the pulse's own line: a "ghost" that seemed to cross a blank wall (issue 18
+        round 32, independent dev seed 6: ghosts 2-7 m outside the footprint made four windows on a blank side
+        wall). False: every such return counts.
     min_pass_pulses (1): a cell is an opening cell with at least this many pulses through the plane ...
     max_wall_share (0.45): ... and at most this share of its pulses returned from the wall (a flush door leaf
         2-3 cm back with 1 cm range noise returns a third of its pulses within pass_depth of the wall).
@@ -587,6 +611,7 @@ class EvidenceParams:
         "max_missed_pulses": ">= 0",
         "missed_max_incidence_deg": "[0, 90]",
         "missed_max_wall_ratio": "[0, 1]",
+        "behind_footprint_margin": ">= 0",
         "min_pass_pulses": ">= 1",
         "max_wall_share": "[0, 1]",
         "evidence_grow_cells": ">= 0",
@@ -613,6 +638,8 @@ class EvidenceParams:
     max_missed_pulses: int = 150
     missed_max_incidence_deg: float = 75.0
     missed_max_wall_ratio: float = 0.2
+    behind_near_footprint: bool = True
+    behind_footprint_margin: float = 1.0
     min_pass_pulses: int = 1
     max_wall_share: float = 0.45
     evidence_grow_cells: int = 2
