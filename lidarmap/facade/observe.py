@@ -329,6 +329,29 @@ def _campaign_members(camp: CampaignData, frame: FacadeFrame, extent: tuple[floa
     return ids[ok]
 
 
+def _ground_on_wall(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, float, float, float],
+                    params: FacadeParams) -> np.ndarray:
+    """The ground-class returns within ``ground_on_wall_band`` of the wall plane over the extent, a cell or more
+    above the ground line in front of them: the foot of the wall that a ground filter took."""
+    band = params.layers.ground_on_wall_band
+    if band <= 0 or camp.ground_index is None:
+        return np.zeros(0, dtype=np.int64)
+    s0, s1, t0, _ = extent
+    corners = frame.to_crs(np.array([[s0, 0, -band], [s1, 0, -band], [s0, 0, band], [s1, 0, band]]))
+    x0, y0 = corners[:, :2].min(axis=0)
+    x1, y1 = corners[:, :2].max(axis=0)
+    ids = camp.ground_ids[camp.ground_index.query_box(x0, y0, x1, y1)]
+    sdt = frame.to_facade(camp.xyz[ids])
+    ok = (np.abs(sdt[:, 2]) <= band) & (sdt[:, 0] >= s0) & (sdt[:, 0] <= s1)
+    if not ok.any():
+        return ids[:0]
+    cell = params.layers.cell
+    cols = max(1, int(np.ceil((s1 - s0) / cell)))
+    ground = _ground_line(camp, frame, s0, s1, t0, cols, cell, params)
+    col = np.clip(np.floor((sdt[:, 0] - s0) / cell).astype(np.int64), 0, cols - 1)
+    return ids[ok & (sdt[:, 1] >= ground[col] + 0.5 * cell)]
+
+
 def _surface_layers(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, float, float, float],
                     member_ids: np.ndarray, layers: list[Layer] | None, params: FacadeParams, campaign_id: int,
                     rng: np.random.Generator, seed: int) -> _Surface | None:
@@ -453,9 +476,14 @@ def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens:
         seq_sdt = np.concatenate([a_sdt, frame.to_facade(camp.xyz[ground_ids])])
         seq_sens = np.concatenate([a_sens, np.full((len(ground_ids), 3), np.nan)])
         max_range = camp.limits[0] * params.occlusion.reach_margin
-        missed = missed_pulse_crossings(seq_sdt, seq_sens, camp.gps[ids], max_range, params)
+        occluder = None
+        if params.evidence.missed_occluder_depth > 0:  # ground returns in front are no occluders: a door's street
+            occluder = np.r_[a_sdt[:, 2] > params.evidence.missed_occluder_depth,
+                             np.zeros(len(ground_ids), dtype=bool)]
+        missed = missed_pulse_crossings(seq_sdt, seq_sens, camp.gps[ids], max_range, params, occluder)
+    no_gaps = (np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool))
     ev = cell_evidence(surf.sdt[on_wall], sens_sdt[on_wall], behind_sdt, behind_sens, is_deep,
-                       missed if missed is not None else (np.zeros(0),) * 3, shape, s0, t0, cell,
+                       missed if missed is not None else no_gaps, shape, s0, t0, cell,
                        front_sdt=surf.sdt[inside & (rel > pass_depth) & (d < params.occlusion.occluder_min_depth)])
     ev.pulse_order = missed is not None
     if ev.pulse_order and not pulse_gaps_agree(ev, params):
@@ -810,6 +838,7 @@ def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, 
     extent = tuple(float(v) for v in extent)
     if member_ids is None:
         member_ids = _campaign_members(camp, frame, extent, params)
+    member_ids = np.concatenate([member_ids, _ground_on_wall(camp, frame, extent, params)])
     surf = _surface_layers(camp, frame, extent, member_ids, layers, params, campaign_id, rng, seed)
     clock = _timed(tm, "layers", clock)
     if surf is None or not _surface_grid(surf, params):

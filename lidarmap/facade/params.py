@@ -146,6 +146,10 @@ class LayerParams:
     surface_max_sigma (0.05): a recessed object whose depths spread more than this (robust σ) is clutter
         (reveals, mixed cells, interiors seen through glass), not a surface: it is dropped (neither a door leaf,
         a recessed window nor a structure).
+    ground_on_wall_band (0.05): ground-class returns within this of the wall plane, a cell or more above the ground
+        line in front, are the wall's: a ground filter takes the foot of a wall (the lowest 0.3-0.5 m), and without
+        those returns the foot read as unsampled or, grown from a few missed pulses, as a hole that joined a door
+        into one unknown region (issue 18 round 33, independent dev seed 2). 0: ground-class returns are never wall.
     layer_cell_share (0.2): a cell shows the front-most layer holding at least this share (and 2) of its
         points (the main layer: 2 points): the wall hides interior surfaces seen through a window behind it, a
         balcony hides the wall.
@@ -167,6 +171,7 @@ class LayerParams:
         "structure_min_offset": ">= 0",
         "layer_cell_share": ">= 0",
         "surface_max_sigma": ">= 0",
+        "ground_on_wall_band": ">= 0",
     }
 
     cell: float = 0.1
@@ -184,6 +189,7 @@ class LayerParams:
     structure_min_offset: float = 0.05
     layer_cell_share: float = 0.2
     surface_max_sigma: float = 0.05
+    ground_on_wall_band: float = 0.05
 
     def __post_init__(self) -> None:
         check_params(self)
@@ -556,6 +562,12 @@ class EvidenceParams:
     max_missed_pulses (150): longer runs of pulses without return in one scan line are not reconstructed (the
         line left the façade: sky, far away).
     missed_max_incidence_deg (75.0): pulses this grazing to the wall may return nothing from a wall: no evidence.
+    missed_occluder_depth (1.0): a run of missed pulses next to a return (not ground) more than this far in front
+        of the wall is no evidence: the missing pulses may have ended on the occluder's edge (no return from a
+        grazed edge) as well as crossed the wall, and their interpolated directions land in its shadow (issue 18
+        round 33, independent dev seed 2: such runs at the foot of a wall behind a parked object made a band of
+        "holes" that joined a door and turned it into an unknown region). Steps and landings lie closer. Such
+        runs still count in the missed_max_wall_ratio check below. 0: no such check.
     missed_max_wall_ratio (0.2): a façade's missed pulses are used only where they agree with its returns: on the
         cells with at least 3 wall returns they make at most this share of the pulses
         (:func:`lidarmap.facade.evidence.pulse_gaps_agree`; a rotating multi-beam scanner's gaps in time order are
@@ -610,6 +622,7 @@ class EvidenceParams:
         "wall_neighbour_tol": ">= 0",
         "max_missed_pulses": ">= 0",
         "missed_max_incidence_deg": "[0, 90]",
+        "missed_occluder_depth": ">= 0",
         "missed_max_wall_ratio": "[0, 1]",
         "behind_footprint_margin": ">= 0",
         "min_pass_pulses": ">= 1",
@@ -637,6 +650,7 @@ class EvidenceParams:
     wall_neighbour_tol: float = 0.01
     max_missed_pulses: int = 150
     missed_max_incidence_deg: float = 75.0
+    missed_occluder_depth: float = 1.0
     missed_max_wall_ratio: float = 0.2
     behind_near_footprint: bool = True
     behind_footprint_margin: float = 1.0
