@@ -331,8 +331,9 @@ def _campaign_members(camp: CampaignData, frame: FacadeFrame, extent: tuple[floa
 
 def _ground_on_wall(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, float, float, float],
                     params: FacadeParams) -> np.ndarray:
-    """The ground-class returns within ``ground_on_wall_band`` of the wall plane over the extent, a cell or more
-    above the ground line in front of them: the foot of the wall that a ground filter took."""
+    """The ground-class returns within ``ground_on_wall_band`` of the wall plane over the extent, half a cell or
+    more above the ground line in front of them (the pavement meets the wall below that): the foot of the wall
+    that a ground filter took."""
     band = params.layers.ground_on_wall_band
     if band <= 0 or camp.ground_index is None:
         return np.zeros(0, dtype=np.int64)

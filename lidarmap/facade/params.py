@@ -146,8 +146,8 @@ class LayerParams:
     surface_max_sigma (0.05): a recessed object whose depths spread more than this (robust σ) is clutter
         (reveals, mixed cells, interiors seen through glass), not a surface: it is dropped (neither a door leaf,
         a recessed window nor a structure).
-    ground_on_wall_band (0.05): ground-class returns within this of the wall plane, a cell or more above the ground
-        line in front, are the wall's: a ground filter takes the foot of a wall (the lowest 0.3-0.5 m), and without
+    ground_on_wall_band (0.05): ground-class returns within this of the wall plane, half a cell or more above the
+        ground line in front, are the wall's: a ground filter takes the foot of a wall (the lowest 0.3-0.5 m), and without
         those returns the foot read as unsampled or, grown from a few missed pulses, as a hole that joined a door
         into one unknown region (issue 18 round 33, independent dev seed 2). 0: ground-class returns are never wall.
     layer_cell_share (0.2): a cell shows the front-most layer holding at least this share (and 2) of its
