@@ -330,14 +330,14 @@ def _campaign_members(camp: CampaignData, frame: FacadeFrame, extent: tuple[floa
 
 
 def _ground_on_wall(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, float, float, float],
-                    params: FacadeParams) -> np.ndarray:
+                    ground_t: np.ndarray, params: FacadeParams) -> np.ndarray:
     """The ground-class returns within ``ground_on_wall_band`` of the wall plane over the extent, half a cell or
-    more above the ground line in front of them (the pavement meets the wall below that): the foot of the wall
-    that a ground filter took."""
+    more above the ground line in front of them (``ground_t``, per grid column; the pavement meets the wall below
+    that): the foot of the wall that a ground filter took."""
     band = params.layers.ground_on_wall_band
     if band <= 0 or camp.ground_index is None:
         return np.zeros(0, dtype=np.int64)
-    s0, s1, t0, _ = extent
+    s0, s1 = extent[0], extent[1]
     corners = frame.to_crs(np.array([[s0, 0, -band], [s1, 0, -band], [s0, 0, band], [s1, 0, band]]))
     x0, y0 = corners[:, :2].min(axis=0)
     x1, y1 = corners[:, :2].max(axis=0)
@@ -347,10 +347,8 @@ def _ground_on_wall(camp: CampaignData, frame: FacadeFrame, extent: tuple[float,
     if not ok.any():
         return ids[:0]
     cell = params.layers.cell
-    cols = max(1, int(np.ceil((s1 - s0) / cell)))
-    ground = _ground_line(camp, frame, s0, s1, t0, cols, cell, params)
-    col = np.clip(np.floor((sdt[:, 0] - s0) / cell).astype(np.int64), 0, cols - 1)
-    return ids[ok & (sdt[:, 1] >= ground[col] + 0.5 * cell)]
+    col = np.clip(np.floor((sdt[:, 0] - s0) / cell).astype(np.int64), 0, len(ground_t) - 1)
+    return ids[ok & (sdt[:, 1] >= ground_t[col] + 0.5 * cell)]
 
 
 def _surface_layers(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, float, float, float],
@@ -449,7 +447,7 @@ def _near_footprint(xyz: np.ndarray, polygon, margin: float) -> np.ndarray:
 
 
 def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens: np.ndarray, around: np.ndarray,
-                  ground_ids: np.ndarray, frame: FacadeFrame, params: FacadeParams,
+                  ground_ids: np.ndarray, g_sdt: np.ndarray, frame: FacadeFrame, params: FacadeParams,
                   polygon=None) -> tuple[CellEvidence, np.ndarray]:
     """Pulses per cell on the wall, through it and missed (:mod:`lidarmap.facade.evidence`), and which points of
     the surface lie more than ``pass_depth`` behind the local wall. Returns farther behind count only near the
@@ -474,7 +472,7 @@ def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens:
     missed: tuple | None = None
     if camp.gps is not None:
         ids = np.concatenate([around, ground_ids])
-        seq_sdt = np.concatenate([a_sdt, frame.to_facade(camp.xyz[ground_ids])])
+        seq_sdt = np.concatenate([a_sdt, g_sdt])
         seq_sens = np.concatenate([a_sens, np.full((len(ground_ids), 3), np.nan)])
         max_range = camp.limits[0] * params.occlusion.reach_margin
         occluder = None
@@ -495,33 +493,33 @@ def _ray_evidence(camp: CampaignData, surf: _Surface, a_sdt: np.ndarray, a_sens:
 
 
 def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: FacadeParams,
-                rng: np.random.Generator, polygon=None) -> _Visibility:
+                rng: np.random.Generator, ground_line: np.ndarray, polygon=None) -> _Visibility:
     """Step "occlusion": shadows of the points in front, cells the laser went through (ray evidence, or the
-    paper's rule: every reachable unobserved cell), the scanner's reach and the ground line give the value grid
-    (hole / occluded / object)."""
+    paper's rule: every reachable unobserved cell), the scanner's reach and the ground line (``ground_line``: the
+    street's, per grid column, :func:`_ground_line`) give the value grid (hole / occluded / object)."""
     shape, cell = surf.shape, surf.cell
-    s0, s1, t0, _ = surf.extent
+    s0, t0 = surf.extent[0], surf.extent[2]
     around, ground_ids = _around_ids(camp, frame, surf, params)
     a_sdt, a_sens = frame.to_facade(camp.xyz[around]), frame.to_facade(camp.sensors[around])
+    g_sdt = frame.to_facade(camp.xyz[ground_ids])
     fg = (a_sdt[:, 2] > params.occlusion.occluder_min_depth) & (a_sdt[:, 2] < a_sens[:, 2])
     fg_spacing = sample_spacing(a_sdt[fg], rng=rng) if fg.any() else 0.0
     occluded = occlusion_mask(a_sdt[fg], a_sens[fg], shape, s0, t0, cell, params, spacing=fg_spacing)
     behind = a_sdt[:, 2] < -params.layers.layer_back
     through = through_cells(a_sdt[behind], a_sens[behind], shape, s0, t0, cell) > 0
     reachable = reach_mask(frame.to_facade(camp.track), shape, s0, t0, cell, camp.limits, params)
-    ev, behind_pts = _ray_evidence(camp, surf, a_sdt, a_sens, around, ground_ids, frame, params, polygon)
+    ev, behind_pts = _ray_evidence(camp, surf, a_sdt, a_sens, around, ground_ids, g_sdt, frame, params, polygon)
     ray = params.evidence.ray_evidence and ev.pulse_order  # without per-pulse times: the paper's rule
     if params.evidence.ray_evidence and not ev.pulse_order and camp.source not in _WARNED_SOURCES:
         _WARNED_SOURCES.add(camp.source)
         log.warning("%s: GPS times do not order the pulses of a scan line (one time per line?); openings are read "
                     "from unobserved cells (the paper's rule)", camp.source or "campaign")
     passed = opening_cells(ev, params) if ray else through
-    ground_t = _ground_line(camp, frame, s0, s1, t0, shape[1], cell, params)
     # the ground is never above the lowest return measured in a column ...
     raw = surf.observed_raw
-    ground_t = np.minimum(ground_t, _lowest(raw, t0, cell))
+    ground_t = np.minimum(ground_line, _lowest(raw, t0, cell))
     if params.openings.landings:  # ... except a landing, on which returns lie: never above the lowest wall return
-        in_front = np.concatenate([a_sdt, frame.to_facade(camp.xyz[ground_ids])])
+        in_front = np.concatenate([a_sdt, g_sdt])
         landing = np.minimum(_landings(in_front, ground_t, s0, cell, params),
                              _lowest(surf.dominant == surf.main_idx, t0, cell))
         ground_t = np.maximum(ground_t, landing)
@@ -839,12 +837,14 @@ def observe_facade(camp: CampaignData, frame: FacadeFrame, extent: tuple[float, 
     extent = tuple(float(v) for v in extent)
     if member_ids is None:
         member_ids = _campaign_members(camp, frame, extent, params)
-    member_ids = np.concatenate([member_ids, _ground_on_wall(camp, frame, extent, params)])
+    cell = params.layers.cell
+    ground_t = _ground_line(camp, frame, extent[0], extent[1], extent[2], grid_shape(extent, cell)[1], cell, params)
+    member_ids = np.concatenate([member_ids, _ground_on_wall(camp, frame, extent, ground_t, params)])
     surf = _surface_layers(camp, frame, extent, member_ids, layers, params, campaign_id, rng, seed)
     clock = _timed(tm, "layers", clock)
     if surf is None or not _surface_grid(surf, params):
         return None
-    vis = _visibility(camp, frame, surf, params, rng, polygon)
+    vis = _visibility(camp, frame, surf, params, rng, ground_t, polygon)
     clock = _timed(tm, "occlusion", clock)
     found = _Elements(campaign_id, surf.shape)
     _layer_elements(surf, vis, found, params, rng)
