@@ -800,6 +800,32 @@ def test_door_typing_by_size_ground_line_and_leaf():
 
 
 
+def test_a_leaf_whose_lower_part_was_hidden_is_a_door_down_to_the_ground_line():
+    """Issue 18 round 34 (independent dev seed 1): a door in a deep porch, its lower 0.7 m hidden, the rest closed by
+    a leaf (the passing pulses come back from just behind the wall), was a window too short for a door. Seen from
+    within ``door_leaf_tol`` of the ground line with nothing observed below, a leaf is a door reaching the ground
+    line. Glass that lets most pulses through, or wall seen below the opening, keeps it a window."""
+    from lidarmap.facade.openings import HOLE, OBJECT, OCCLUDED, detect_openings
+
+    values = np.full((60, 50), OBJECT, dtype=np.int8)
+    values[0:7, 5:30] = OCCLUDED  # the lower 0.7 m hidden
+    values[7:25, 10:21] = HOLE  # seen from 0.7 m to 2.5 m up, 1.1 m wide
+    shut = np.where(values == HOLE, 1.0, np.nan)
+
+    def found(opaque, params=FacadeParams()):
+        ops = detect_openings(values, 0.1, params, ground_t=np.zeros(50), opaque=opaque)
+        return [op for op in ops if op.n_cells > 20]
+
+    [door] = found(shut)
+    assert door.kind is ElementKind.DOOR
+    assert door.bounds[2] == pytest.approx(0.0) and door.bounds[3] == pytest.approx(2.5, abs=0.05)
+    assert door.rect[0] == 0
+    assert [op.kind for op in found(shut, FacadeParams().updated(hidden_leaf_doors=False))] == [ElementKind.WINDOW]
+    assert [op.kind for op in found(np.where(values == HOLE, 0.3, np.nan))] == [ElementKind.WINDOW]  # glazing
+    values[3:7, 5:30] = OBJECT  # wall seen below it: a window on a sill
+    assert [op.kind for op in found(shut)] == [ElementKind.WINDOW]
+
+
 def test_a_verdict_for_want_of_leaf_evidence_is_undecided():
     """Issue 18 round 24 (dev seed 358): a door-sized opening 0.6 m above the ground line is a door when a leaf
     closes it and a window when the pulses cross it; with no pulse through its core (seen at a grazing angle)
@@ -1254,6 +1280,36 @@ def test_ground_line_drops_sparse_bins_and_keeps_the_street_slope_beyond_its_las
     every_bin = _ground_line(camp, frame, 0.0, 10.0, 0.0, cols, cell, params.updated(ground_min_points=1))
     # the stray points taken for the street (between the bins' centres: beyond the last one the slope is capped)
     assert every_bin[(s_mid > 5.0) & (s_mid < 9.5)].min() > 2.5
+
+
+def test_ground_line_ignores_ground_labelled_points_on_a_vans_roof():
+    """Independent dev seed 8 (issue 18 round 34): a van 1.45 m tall parked in front of a double door hid the street
+    there, and the ground filter labelled 12-17 of its roof's returns per metre ground: enough for a bin of the
+    ground line, which rose 0.8-1.4 m over the door, and the door became two windows. Among the roof's many
+    other returns those points are no street (``ground_min_share``); without the check the line climbs the roof."""
+    from lidarmap.core import Trajectory
+    from lidarmap.facade.campaign import campaign_data
+    from lidarmap.facade.model import FacadeFrame
+    from lidarmap.facade.observe import _ground_line
+
+    rng = np.random.default_rng(2)
+    street = np.column_stack([rng.uniform(0.0, 10.0, 1000), rng.uniform(-3.5, -0.5, 1000), np.zeros(1000)])
+    street = street[(street[:, 0] < 3.0) | (street[:, 0] > 7.0)]  # the van hides 3 < x < 7
+    roof = np.column_stack([rng.uniform(3.0, 7.0, 1200), rng.uniform(-3.5, -1.5, 1200), np.full(1200, 1.45)])
+    xyz = np.vstack([street, roof])
+    ground = np.zeros(len(xyz), dtype=bool)
+    ground[:len(street)] = True
+    ground[len(street) + np.arange(0, 1200, 20)] = True  # 60 roof returns labelled ground: 15 per metre
+    traj = Trajectory(time=np.array([0.0, 1.0]), xyz=np.array([[0.0, -8.0, 2.5], [10.0, -8.0, 2.5]]))
+    params = FacadeParams()
+    camp = campaign_data(xyz, np.zeros(len(xyz)), ground, np.zeros(len(xyz), dtype=bool), traj, (0.0, 0.0, 0.0),
+                         traj.xyz, xyz.min(axis=0), params)
+    frame = FacadeFrame(origin=np.zeros(3), u=np.array([1.0, 0.0, 0.0]))
+    cols, cell = 100, 0.1
+    line = _ground_line(camp, frame, 0.0, 10.0, 0.0, cols, cell, params)
+    assert np.abs(line).max() < 0.06, line.max()
+    lifted = _ground_line(camp, frame, 0.0, 10.0, 0.0, cols, cell, params.updated(ground_min_share=0.0))
+    assert lifted[40:60].min() > 1.3
 
 
 def test_ground_line_beyond_its_bins_is_no_steeper_than_a_street():

@@ -336,6 +336,11 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         kind, undecided = door_or_window_verdict(bounds, ground_here, mask, opaque, params, width_cut=width_cut)
         if cut is not None:  # wall closes it below: no door, whatever the ground line of a wall seen this little
             kind, undecided = ElementKind.WINDOW, False
+        elif kind is ElementKind.WINDOW and low is None and hidden_leaf_door(
+                work, rect, bounds, ground_here, t0, cell, mask, opaque, params, width_cut):
+            kind, undecided = ElementKind.DOOR, False  # a leaf whose lower part was hidden: it reaches the ground
+            g_row = max(int(math.floor((ground_here - t0) / cell + 0.5)), 0)
+            rect, bounds = (g_row,) + tuple(rect[1:]), (bounds[0], bounds[1], ground_here, bounds[3])
         elif kind is ElementKind.WINDOW and low is None \
                 and door_below_hidden(work, rect, bounds, ground_here, t0, cell, params, width_cut):
             unknown.rect = seen_rect  # the top of a door or a window: what hid its lower part decides which
@@ -437,15 +442,42 @@ def door_below_hidden(values: np.ndarray, rect: tuple[int, int, int, int], bound
     ``door_max_height`` above the ground line. Its bottom, hence its kind, is then unknown (issue 18 round 26,
     dev seeds 388, 392 and 403: the upper 0.8-1.9 m of doors seen above parked vehicles were stored as windows)."""
     op = params.openings
-    if not op.hidden_bottom_unknown:
+    if not op.hidden_bottom_unknown or bounds[2] - ground < op.hidden_bottom_min_height:
+        return False  # the bottom seen may be a ground-floor window's sill with the wall below it hidden
+    return _hidden_to_ground(values, rect, bounds, ground, t0, cell, params, width_cut)
+
+
+def hidden_leaf_door(values: np.ndarray, rect: tuple[int, int, int, int], bounds: tuple[float, float, float, float],
+                     ground: float, t0: float, cell: float, mask: np.ndarray, opaque: np.ndarray | None,
+                     params: FacadeParams, width_cut: bool = False) -> bool:
+    """Whether a window is the upper part of a door closed by an opaque leaf whose lower part the campaign did not
+    see: with ``hidden_leaf_doors``, its core's passing pulses came back from just behind the wall (at least
+    ``evidence.opaque_share`` of them, :func:`door_or_window`), its seen part starts within ``door_leaf_tol`` of the
+    ground line, and the cells down to the ground line are hidden as :func:`door_below_hidden` asks (mostly not
+    observed, no row of mostly observed wall, door-sized if it reached the ground). A window's glass lets most
+    pulses through or returns a share of them; a leaf stops them all. The door then reaches the ground line
+    (issue 18 round 34, independent dev seed 1: a door in a 0.5 m deep porch, its lower 0.7 m hidden, was a
+    window)."""
+    op = params.openings
+    if not op.hidden_leaf_doors or bounds[2] - ground > op.door_leaf_tol:
         return False
+    share = _leaf_share(mask, opaque)
+    if len(share) == 0 or float(share.mean()) < params.evidence.opaque_share:
+        return False
+    return _hidden_to_ground(values, rect, bounds, ground, t0, cell, params, width_cut)
+
+
+def _hidden_to_ground(values: np.ndarray, rect: tuple[int, int, int, int], bounds: tuple[float, float, float, float],
+                      ground: float, t0: float, cell: float, params: FacadeParams, width_cut: bool) -> bool:
+    """Whether the cells between the ground line and a rectangle's bottom are mostly not observed, with no row of
+    mostly observed wall among them, and the rectangle would be door-sized if it reached the ground line (see
+    :func:`door_below_hidden`)."""
+    op = params.openings
     r0, r1, c0, c1 = rect
     g_row = max(int(math.floor((ground - t0) / cell + 0.5)), 0)
     if r0 - g_row < 2:
         return False  # it reaches the ground line: the verdict saw its bottom
     width, top = bounds[1] - bounds[0], bounds[3] - ground
-    if bounds[2] - ground < op.hidden_bottom_min_height:
-        return False  # the bottom seen may be a ground-floor window's sill with the wall below it hidden
     if top > op.door_max_height or not op.door_sized(max(width, op.door_min_width) if width_cut else width, top):
         return False
     band = values[g_row:r0, c0:c1]

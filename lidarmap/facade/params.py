@@ -345,11 +345,18 @@ class OpeningParams:
         the bottom seen may be a ground-floor window's sill (0.1-1.2 m in the hard family) above a hidden wall
         (without this limit six windows seen whole became unknown on dev seeds 382-405, against nine false
         windows on door tops removed).
+    hidden_leaf_doors (True): a window whose core an opaque leaf closes (evidence.opaque_share of its passing
+        pulses back from just behind the wall), seen from within door_leaf_tol of the ground line, with its cells
+        down to the ground line hidden as hidden_bottom_unknown asks, is a door reaching the ground line (a glass
+        pane lets most pulses through or returns a share; issue 18 round 34).
     ground_band (4.0): ground points up to this far in front of the wall give the ground line ...
     ground_bin (1.0): ... one low (20th percentile) height per this length along the wall ...
     ground_min_points (10): ... from bins holding at least this many ground points; the others take the height
         of their neighbours (a street hidden by parked cars left bins of 1-8 points labelled ground at 4-12 m:
-        a window on the first floor above them became a door, dev seed 136).
+        a window on the first floor above them became a door, dev seed 136) ...
+    ground_min_share (0.5), ground_share_band (0.1): ... and whose ground points within this of the bin's low
+        height make at least this share of all the band's returns there (and are not none): a ground filter's
+        points on a van's roof are a few among the roof's returns (issue 18 round 34); 0 turns the check off ...
     ground_max_slope (0.1): ... beyond the first and last such bins the line goes on at its fitted slope, at most
         this steep (a street's gradient; two bins of a sparse campaign gave 0.3) ...
     ground_below_grid (0.15): ... and never lies more than this below the façade grid's bottom (a new façade's grid
@@ -434,6 +441,8 @@ class OpeningParams:
         "ground_band": ">= 0",
         "ground_bin": ">= 0",
         "ground_min_points": ">= 1",
+        "ground_min_share": "[0, 1]",
+        "ground_share_band": "> 0",
         "ground_max_slope": ">= 0",
         "ground_below_grid": ">= 0",
         "landing_min_rise": ">= 0",
@@ -487,6 +496,8 @@ class OpeningParams:
     ground_band: float = 4.0
     ground_bin: float = 1.0
     ground_min_points: int = 10
+    ground_min_share: float = 0.5
+    ground_share_band: float = 0.1
     ground_max_slope: float = 0.1
     ground_below_grid: float = 0.15
     landings: bool = True
@@ -500,6 +511,7 @@ class OpeningParams:
     door_tallest: float = 2.9
     hidden_bottom_unknown: bool = True
     hidden_bottom_min_height: float = 1.2
+    hidden_leaf_doors: bool = True
     hole_open_cells: int = 1
     bridge_cells: int = 2
     split_bridged: bool = True
