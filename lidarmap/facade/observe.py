@@ -337,13 +337,9 @@ def _ground_on_wall(camp: CampaignData, frame: FacadeFrame, extent: tuple[float,
     band = params.layers.ground_on_wall_band
     if band <= 0 or camp.ground_index is None:
         return np.zeros(0, dtype=np.int64)
-    s0, s1 = extent[0], extent[1]
-    corners = frame.to_crs(np.array([[s0, 0, -band], [s1, 0, -band], [s0, 0, band], [s1, 0, band]]))
-    x0, y0 = corners[:, :2].min(axis=0)
-    x1, y1 = corners[:, :2].max(axis=0)
-    ids = camp.ground_ids[camp.ground_index.query_box(x0, y0, x1, y1)]
-    sdt = frame.to_facade(camp.xyz[ids])
-    ok = (np.abs(sdt[:, 2]) <= band) & (sdt[:, 0] >= s0) & (sdt[:, 0] <= s1)
+    s0 = extent[0]
+    ids, sdt = _along_wall(camp, frame, s0, extent[1], camp.ground_index, camp.ground_ids, -band, band)
+    ok = np.abs(sdt[:, 2]) <= band
     if not ok.any():
         return ids[:0]
     cell = params.layers.cell
@@ -568,15 +564,26 @@ def _lowest(cells: np.ndarray, t0: float, cell: float) -> np.ndarray:
     return np.where(cells.any(axis=0), t0 + np.argmax(cells, axis=0) * cell, np.inf)
 
 
+def _along_wall(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, index, ids: np.ndarray, d_lo: float,
+                d_hi: float) -> tuple[np.ndarray, np.ndarray]:
+    """The points of one class (``index`` over ``ids``) in the map box around s0 .. s1 and depths d_lo .. d_hi:
+    their ids and façade coordinates (s, t, d), those with s outside s0 .. s1 left out (the box is axis-aligned,
+    the wall need not be: each caller cuts the depths it wants)."""
+    corners = frame.to_crs(np.array([[s0, 0, d_lo], [s1, 0, d_lo], [s0, 0, d_hi], [s1, 0, d_hi]]))
+    x0, y0 = corners[:, :2].min(axis=0)
+    x1, y1 = corners[:, :2].max(axis=0)
+    found = ids[index.query_box(x0, y0, x1, y1)]
+    sdt = frame.to_facade(camp.xyz[found])
+    keep = (sdt[:, 0] >= s0) & (sdt[:, 0] <= s1)
+    return found[keep], sdt[keep]
+
+
 def _in_front(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, index, ids: np.ndarray,
               band: float) -> np.ndarray:
     """Façade coordinates (s, t, d) of the points of one class (``index`` over ``ids``) over s0 .. s1 and 0.2 m to
     ``band`` in front of the wall (the wall's own foot and its returns stay out)."""
-    corners = frame.to_crs(np.array([[s0, 0, 0.0], [s1, 0, 0.0], [s0, 0, band], [s1, 0, band]]))
-    x0, y0 = corners[:, :2].min(axis=0)
-    x1, y1 = corners[:, :2].max(axis=0)
-    sdt = frame.to_facade(camp.xyz[ids[index.query_box(x0, y0, x1, y1)]])
-    return sdt[(sdt[:, 2] > 0.2) & (sdt[:, 2] < band) & (sdt[:, 0] >= s0) & (sdt[:, 0] <= s1)]
+    sdt = _along_wall(camp, frame, s0, s1, index, ids, 0.0, band)[1]
+    return sdt[(sdt[:, 2] > 0.2) & (sdt[:, 2] < band)]
 
 
 def _ground_on_objects(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, bins: np.ndarray,
