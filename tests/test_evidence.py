@@ -1083,8 +1083,7 @@ def test_flush_door_3_5_cm_back_keeps_its_sides_where_its_returns_fall_within_pa
     # what it was without the rule: the first door a window (with the extent from the lowest wall return; the
     # extent from the ground line, round 30, keeps the door's foot on the grid and saves its type too)
     monkeypatch.setattr(observe, "_set_back_cells", lambda ev, params: None)
-    before = [door_fit(*scene, FacadeParams().updated(extent_to_ground=False, leaf_mean_around=False))
-              for scene in scenes]
+    before = [door_fit(*scene, FacadeParams().updated(extent_to_ground=False)) for scene in scenes]
     assert before[0][1] is ElementKind.WINDOW, before
     assert all(kind is ElementKind.DOOR for _, kind in (door_fit(*scene) for scene in scenes))
 
@@ -1644,67 +1643,3 @@ def test_the_foot_of_a_wall_classed_ground_is_wall_under_a_low_window():
     assert abs(_window_sill_error(buildings, window)) <= 0.05
     old = FacadeParams().updated(ground_on_wall_band=0.0)
     assert _window_sill_error(extract_buildings(cloud, traj, fps, old, campaign_id=1, seed=0), window) >= 0.15
-
-
-def _leaf_behind_a_van(sill_rows: int = 0, noise: float = 0.012, seed: int = 3):
-    """Cell evidence of a flush double door (2.0 m x 2.4 m, its leaf 2.5 cm behind a wall whose cells read 8 mm in
-    front of the plane fit) whose lower 1.2 m a van hid: no returns there. ``sill_rows`` rows of wall returns right
-    below the seen part instead (a window's sill). Cell means carry ``noise`` (a few returns with 1 cm range noise)."""
-    from lidarmap.facade.evidence import CellEvidence
-
-    rng = np.random.default_rng(seed)
-    shape = (40, 50)
-    door = np.zeros(shape, dtype=bool)
-    door[0:24, 15:35] = True
-    hidden = np.zeros(shape, dtype=bool)
-    hidden[0:12, 10:45] = True
-    offset = np.where(door, -0.017, 0.008) + rng.normal(0.0, noise, shape)
-    n = np.full(shape, 3)
-    if sill_rows:
-        hidden[12 - sill_rows:12, 10:45] = False
-        offset[12 - sill_rows:12, 10:45] = 0.008
-    n[hidden] = 0
-    offset[hidden] = np.nan
-    zeros = np.zeros(shape)
-    return CellEvidence(zeros, zeros, zeros, zeros, zeros, offset=offset, offset_n=n), door, hidden
-
-
-def test_a_flush_leaf_whose_lower_half_a_van_hid_is_a_door_leaf_down_to_the_ground():
-    """Issue 18 round 35 (independent dev seed 5): a van hid the lower 1.1 m of a flush double door; the 1.2 m of
-    leaf seen above it were too short for a door leaf, and range noise split them into fragments. The leaf counts
-    from the ground line when the cells below it are hidden, and takes those hidden cells in (the door then
-    reaches the ground); without the hidden cells known it is too short; wall seen below it (a sill) keeps it out."""
-    from lidarmap.facade.evidence import door_leaves
-
-    ev, door, hidden = _leaf_behind_a_van()
-    no_hole, ground, cell = np.zeros(door.shape, dtype=bool), np.zeros(door.shape[1]), 0.1
-    leaves, crossed = door_leaves(ev, no_hole, ground, 0.0, cell, FacadeParams(), hidden)
-    assert not crossed.any()
-    assert (leaves & door).sum() >= 0.9 * door.sum() and (leaves & ~door).sum() <= 0.1 * door.sum(), \
-        ((leaves & door).sum(), (leaves & ~door).sum())
-    assert leaves[0:12, 17:33].all()  # the hidden part below the seen leaf, down to the ground line
-    # each cell's own mean alone: range noise splits the leaf seen into fragments too small for a door
-    alone = FacadeParams().updated(leaf_mean_around=False)
-    assert not door_leaves(ev, no_hole, ground, 0.0, cell, alone, hidden)[0].any()
-    assert not door_leaves(ev, no_hole, ground, 0.0, cell, FacadeParams())[0].any()
-    off = FacadeParams().updated(leaf_hidden_below=False)
-    assert not door_leaves(ev, no_hole, ground, 0.0, cell, off, hidden)[0].any()
-    ev, door, hidden = _leaf_behind_a_van(sill_rows=2)
-    assert not door_leaves(ev, no_hole, ground, 0.0, cell, FacadeParams(), hidden)[0].any()
-
-
-def test_a_hidden_leaf_part_stays_out_where_the_value_grid_would_join_it_with_the_next_opening():
-    """Issue 18 round 35 (independent dev seed 4): a garage door 4 cells beside a door leaf whose lower part a van
-    hid. Its hidden cells taken into the leaf, the value grid's regions bridged the gap (``bridge_cells``) and both
-    became one window 4.7 m wide. Within 2 bridge_cells + 1 cells of another opening the leaf keeps its seen part;
-    farther away it reaches the ground line."""
-    from lidarmap.facade.evidence import door_leaves
-
-    ev, door, hidden = _leaf_behind_a_van()
-    ground, cell = np.zeros(door.shape[1]), 0.1
-    for gap, reaches_ground in ((4, False), (6, True)):
-        garage = np.zeros(door.shape, dtype=bool)
-        garage[0:22, 2:15 - gap] = True  # pulses through it, crossing the van's shadow too
-        leaves, _ = door_leaves(ev, garage, ground, 0.0, cell, FacadeParams(), hidden)
-        assert leaves[12:24, 17:33].mean() > 0.9, gap  # the leaf seen: a door either way
-        assert bool(leaves[0:12, 17:33].all()) is reaches_ground, gap

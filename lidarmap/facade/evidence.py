@@ -470,15 +470,6 @@ def wall_offset(s: np.ndarray, t: np.ndarray, rel: np.ndarray, shape: tuple[int,
         return np.where(n > 0, total / np.maximum(n, 1), np.nan), n
 
 
-def _mean_around(ev: CellEvidence) -> np.ndarray:
-    """Per cell the return-weighted mean wall offset over the 3 x 3 cells around it (NaN: under 4 returns)."""
-    n = ev.offset_n.astype(np.float64)
-    total = ndimage.convolve(np.nan_to_num(ev.offset) * n, np.ones((3, 3)), mode="constant")
-    count = ndimage.convolve(n, np.ones((3, 3)), mode="constant")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count >= 4, total / np.maximum(count, 1), np.nan)
-
-
 def _mean_offset(ev: CellEvidence, cells: np.ndarray) -> float:
     """Return-weighted mean wall offset over ``cells`` (NaN without returns)."""
     n = ev.offset_n[cells]
@@ -488,7 +479,7 @@ def _mean_offset(ev: CellEvidence, cells: np.ndarray) -> float:
 
 
 def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: float, cell: float,
-                params: FacadeParams, hidden: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                params: FacadeParams) -> tuple[np.ndarray, np.ndarray]:
     """Cells of door leaves nearly flush with the wall (a flush door 2-3 cm back returns most of its pulses within
     ``pass_depth`` of the wall: too few cross the plane for :func:`opening_cells`). A door leaf is told from the
     wall by geometry: a rectangle of cells whose mean return depth lies at least ``leaf_offset`` behind the wall
@@ -496,11 +487,6 @@ def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: fl
     ``door_max_width`` wide), filling ``Ta`` of its bounding box, starting within ``door_leaf_tol`` of the
     ground line and lying ``leaf_offset`` behind the wall beside and above it. Other regions are left alone: a
     blank wall with range noise never forms such a rectangle, glass and rooms are :func:`opening_cells`'.
-    With ``hidden`` (cells the campaign could not see: shadows of cars and vans, out of reach) and
-    ``leaf_hidden_below``, a leaf seen too short for a door, or starting too high, counts from the ground line
-    when the cells between them are hidden (:func:`_hidden_below`) and it would be no taller than
-    ``door_max_height``: a van hid its lower part, and the leaf takes those hidden cells in
-    (:func:`_hidden_leaf_part`).
 
     Returns (leaves, crossed): ``crossed`` are the cells with returns a little behind the wall inside such a
     rectangle that the pulses mostly crossed: not wall (a flush door half crossed, issue 18), but no leaf either
@@ -511,11 +497,8 @@ def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: fl
     if not p.door_leaf or ev.offset is None:
         return out, crossed
     known = (ev.offset_n >= 2) | hole  # cells whose returns tell wall from leaf
-    # a cell's mean is noisy (a few returns): half the offset here, the whole region must lie leaf_offset back;
-    # or the mean over the 3 x 3 cells around it (leaf_mean_around)
-    back = -0.5 * p.leaf_offset
-    behind = (ev.offset < back) | (_mean_around(ev) < back) if p.leaf_mean_around else ev.offset < back
-    behind = ((ev.offset_n >= 2) & behind) | hole
+    # a cell's mean is noisy (a few returns): half the offset here, the whole region must lie leaf_offset back
+    behind = ((ev.offset_n >= 2) & (ev.offset < -0.5 * p.leaf_offset)) | hole
     # the scan lines of a far wall leave rows without returns: bridge them, never across measured wall
     closed = ndimage.binary_closing(np.pad(behind, 2), structure=square(2))[2:-2, 2:-2]
     # bridged: cells without a return, or whose one return lies back too (one return on the wall is measured
@@ -528,16 +511,12 @@ def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: fl
         r0, r1, c0, c1 = sl[0].start, sl[0].stop, sl[1].start, sl[1].stop
         region = labels == lab
         width, height = (c1 - c0) * cell, (r1 - r0) * cell
-        ground = float(np.mean(ground_t[c0:c1]))
-        lifted = t0 + r0 * cell > ground + op.door_leaf_tol  # a leaf: maybe up some steps
-        g_row = None  # the ground line's row, for a leaf whose lower part was hidden: it reaches down to it
-        if lifted or not op.door_sized(width, height):
-            g_row = _hidden_below(ev, hidden, (r0, c0, c1), ground, t0, cell, params)
-            top = t0 + r1 * cell - ground
-            if g_row is None or top > op.door_max_height or not op.door_sized(width, top):
-                continue
+        if not op.door_sized(width, height):
+            continue
         if (region & known).sum() < op.Ta * known[r0:r1, c0:c1].sum():
             continue  # measured wall inside the box: not one rectangle
+        if t0 + r0 * cell > float(np.mean(ground_t[c0:c1])) + op.door_leaf_tol:  # a leaf: maybe up some steps
+            continue
         leaf = region & ~hole & (ev.offset_n > 0)
         if leaf.sum() < 0.3 * (region & known).sum():
             # mostly crossed by the pulses: its leaf cells are not wall (without them a flush door a campaign sees
@@ -557,46 +536,7 @@ def door_leaves(ev: CellEvidence, hole: np.ndarray, ground_t: np.ndarray, t0: fl
         if not (_mean_offset(ev, depth_cells) - _mean_offset(ev, ring) <= -p.leaf_offset):
             continue
         into |= mark
-        if g_row is not None and into is out:
-            out |= _hidden_leaf_part(hidden, hole & ~region, (g_row, r1, c0, c1), params)
     return out, crossed
-
-
-def _hidden_leaf_part(hidden: np.ndarray, other_holes: np.ndarray, box: tuple[int, int, int, int],
-                      params: FacadeParams) -> np.ndarray:
-    """The hidden cells of a leaf's box down to the ground line (``box``: g_row, r1, c0, c1): the leaf goes on
-    behind what hid it. None (an empty mask) when they come within 2 ``bridge_cells`` + 1 cells of another
-    opening's cells (``other_holes``, opened as :func:`lidarmap.facade.openings.hole_regions` does): the value
-    grid's regions bridge such gaps, and a garage door beside a door up some steps whose lower part a van hid
-    became one window 4.7 m wide (issue 18 round 35, independent dev seed 4)."""
-    g_row, r1, c0, c1 = box
-    part = np.zeros(hidden.shape, dtype=bool)
-    part[g_row:r1, c0:c1] = hidden[g_row:r1, c0:c1]
-    op = params.openings
-    if op.hole_open_cells > 0:  # the value grid's hole cells: stray ones are dropped before regions are formed
-        other_holes = ndimage.binary_opening(other_holes, structure=square(op.hole_open_cells))
-    near = ndimage.binary_dilation(part, structure=square(2 * op.bridge_cells + 1))  # the closing joins gaps of 2k
-    return np.zeros_like(part) if (near & other_holes).any() else part
-
-
-def _hidden_below(ev: CellEvidence, hidden: np.ndarray | None, box: tuple[int, int, int], ground: float, t0: float,
-                  cell: float, params: FacadeParams) -> int | None:
-    """The row of the ground line (``ground``, façade t) when the campaign could not see the cells between it and
-    a leaf's lowest row (``box``: r0, c0, c1; ``hidden``): at least two rows, mostly hidden, and no row of them
-    mostly cells whose returns lie no leaf's depth back (a window's sill: the wall below it was seen); None
-    otherwise. Issue 18 round 35, independent dev seed 5: a van hid the lower 1.1 m of a flush double door; its
-    upper 1.2 m were too short for a door leaf."""
-    if hidden is None or not params.evidence.leaf_hidden_below:
-        return None
-    r0, c0, c1 = box
-    g_row = max(int(np.floor((ground - t0) / cell + 0.5)), 0)
-    if r0 - g_row < 2:
-        return None
-    band = (slice(g_row, r0), slice(c0, c1))
-    on_wall = (ev.offset_n[band] >= 2) & (ev.offset[band] >= -0.5 * params.evidence.leaf_offset)
-    if bool((on_wall.mean(axis=1) > 0.5).any()) or float(hidden[band].mean()) <= 0.5:
-        return None
-    return g_row
 
 
 def recessed_share(ev: CellEvidence) -> np.ndarray:

@@ -525,8 +525,7 @@ def _visibility(camp: CampaignData, frame: FacadeFrame, surf: _Surface, params: 
     # window; issue 18 round 31, independent dev seed 2)
     ground_t = np.maximum(ground_t, t0 - params.openings.ground_below_grid)
     no_cells = np.zeros(shape, dtype=bool)
-    leaves, crossed_leaf = door_leaves(ev, passed, ground_t, t0, cell, params, occluded | ~reachable) if ray \
-        else (no_cells, no_cells)
+    leaves, crossed_leaf = door_leaves(ev, passed, ground_t, t0, cell, params) if ray else (no_cells, no_cells)
     passed = passed | leaves | crossed_leaf
     if ray:
         passed &= ~stray_patches(passed, ev, params, leaves | crossed_leaf)

@@ -612,13 +612,6 @@ class EvidenceParams:
         averages to a few mm over a cell's returns) ...
     leaf_band (0.08): ... the mean over the returns within this of the local wall (glass and rooms farther back
         are openings of their own).
-    leaf_mean_around (True): ... a cell whose 3 x 3 neighbourhood's returns lie on average half of leaf_offset
-        back joins a leaf as its own mean does (range noise splits a leaf 2.6 cm back beside a wall read 1 cm in
-        front of its plane fit into fragments too small for a door: issue 18 round 35, independent dev seed 5) ...
-    leaf_hidden_below (True): ... a leaf too short for a door, or starting more than openings.door_leaf_tol up,
-        whose cells down to the ground line the campaign could not see (mostly occluded or out of reach, no row
-        of wall returns among them: a van in front) counts its height from the ground line (at most
-        openings.door_max_height) and takes those cells in.
     weight_pulses (2.0): a campaign's vote on a cell weighs 1 + floor(pulses x cos(incidence) / weight_pulses),
         at most 4 ...
     weight_occlusion_cells (2): ... halved (at least 1) within this many cells of an occluded cell.
@@ -682,8 +675,6 @@ class EvidenceParams:
     door_leaf: bool = True
     leaf_offset: float = 0.012
     leaf_band: float = 0.08
-    leaf_mean_around: bool = True
-    leaf_hidden_below: bool = True
     weight_pulses: float = 2.0
     weight_occlusion_cells: int = 2
     fill_vote_max_radius: int = 1
