@@ -339,8 +339,8 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         elif kind is ElementKind.WINDOW and low is None and hidden_leaf_door(
                 work, rect, bounds, ground_here, t0, cell, mask, opaque, params, width_cut):
             kind, undecided = ElementKind.DOOR, False  # a leaf whose lower part was hidden: it reaches the ground
-            g_row = max(int(math.floor((ground_here - t0) / cell + 0.5)), 0)
-            rect, bounds = (g_row,) + tuple(rect[1:]), (bounds[0], bounds[1], ground_here, bounds[3])
+            rect = (_ground_row(ground_here, t0, cell),) + tuple(rect[1:])
+            bounds = (bounds[0], bounds[1], ground_here, bounds[3])
         elif kind is ElementKind.WINDOW and low is None \
                 and door_below_hidden(work, rect, bounds, ground_here, t0, cell, params, width_cut):
             unknown.rect = seen_rect  # the top of a door or a window: what hid its lower part decides which
@@ -474,7 +474,7 @@ def _hidden_to_ground(values: np.ndarray, rect: tuple[int, int, int, int], bound
     :func:`door_below_hidden`)."""
     op = params.openings
     r0, r1, c0, c1 = rect
-    g_row = max(int(math.floor((ground - t0) / cell + 0.5)), 0)
+    g_row = _ground_row(ground, t0, cell)
     if r0 - g_row < 2:
         return False  # it reaches the ground line: the verdict saw its bottom
     width, top = bounds[1] - bounds[0], bounds[3] - ground
@@ -484,6 +484,11 @@ def _hidden_to_ground(values: np.ndarray, rect: tuple[int, int, int, int], bound
     if band.size == 0 or bool(((band == OBJECT).mean(axis=1) > 0.5).any()):
         return False  # wall seen below it: a sill, whatever hid the rest
     return float(np.mean(band == OCCLUDED)) > 0.5
+
+
+def _ground_row(ground: float, t0: float, cell: float) -> int:
+    """The grid row whose lower edge lies nearest the ground line ``ground`` (façade t; grid bottom ``t0``)."""
+    return max(int(math.floor((ground - t0) / cell + 0.5)), 0)
 
 
 def side_hidden(values: np.ndarray, rect: tuple[int, int, int, int], params: FacadeParams) -> bool:
