@@ -241,7 +241,8 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
 
     * fewer hole cells than ``min_hole_area``: ignored (sampling gaps);
     * touching the left, right or top border of the grid (unless wall closes the three other sides of a hole the
-      left or right border cuts: :func:`_cut_side`), larger than ``max_opening_area``, more than
+      left or right border cuts, :func:`_cut_side`, or its sides and bottom when the top border cuts it,
+      :func:`top_cut`), larger than ``max_opening_area``, more than
       ``occlusion_touch_max`` of its border occluded (unless wall encloses it: :func:`enclosed_by_wall`), fill
       ratio below ``Ta``, rectangle ε_w above
       ``max_window_uncertainty``, a side below ``min_opening_size`` or cells spanning less than it both ways:
@@ -289,7 +290,8 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         ring_vals = work[win][ring]
         occ_border = float(np.count_nonzero(ring_vals == OCCLUDED)) / max(1, ring_vals.size)
         cut = _cut_side(work, (r0, r1, c0, c1), params)
-        touches_edge = (c0 == 0 or c1 == cols or r1 == rows) and cut is None
+        cut_above = cut is None and top_cut(work, (r0, r1, c0, c1), ground, t0, cell, params)
+        touches_edge = (c0 == 0 or c1 == cols or r1 == rows) and cut is None and not cut_above
         area = n_region * cell * cell
         unknown = Opening(ElementKind.UNKNOWN, mask, None, math.inf, fill, occ_border, n_cells, region)
         if touches_edge or area > params.openings.max_opening_area or not (
@@ -319,8 +321,8 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
             hidden = not enclosed_by_wall(work, seen_rect, params, sides=(True, True, False, True))
         else:
             sides = _sides(rect, ground, t0, cell, params)
-            if cut is not None:  # no wall was seen beyond the façade's extent: that side needs none
-                sides = tuple(named and k != cut for k, named in enumerate(sides))
+            if cut is not None or cut_above:  # no wall was seen beyond the façade's extent: that side needs none
+                sides = tuple(named and k != (3 if cut_above else cut) for k, named in enumerate(sides))
             hidden = occ_border > params.openings.occlusion_touch_max and not enclosed_by_wall(
                 work, rect, params, sides=sides)
         # a gap whose cells span less than min_opening_size both ways is no opening, however far the half-cell
@@ -519,6 +521,23 @@ def _cut_side(values: np.ndarray, box: tuple[int, int, int, int], params: Facade
         return None
     side = 0 if c0 == 0 else 1
     return side if enclosed_by_wall(values, box, params, sides=(side == 1, side == 0, True, True)) else None
+
+
+def top_cut(values: np.ndarray, box: tuple[int, int, int, int], ground: np.ndarray, t0: float, cell: float,
+            params: FacadeParams) -> bool:
+    """Whether a hole whose bounding box (r0, r1, c0, c1) the grid's top border cuts is the part of an opening seen
+    below it (``top_cut_windows``): away from the left and right borders, with wall on its left and right and below
+    it (none below a door-tall box from the ground line, :func:`_sides`). A campaign whose view ends low (a
+    multibeam scanner's upper beam at 2.1-3.3 m) cuts the grid there, across shop windows and doors: they were
+    unknown regions (independent dev seeds 6 and 21, issue 18 round 36). The gap past a building's corner or the
+    sky beside a gable's slope touches a side border or lacks wall beside it; a strip under the eave is lower than
+    ``top_cut_min_height`` (hard dev seed 416: 0.4 m, a false window)."""
+    r0, r1, c0, c1 = box
+    rows, cols = values.shape
+    op = params.openings
+    if not op.top_cut_windows or r1 != rows or c0 == 0 or c1 >= cols or (r1 - r0) * cell < op.top_cut_min_height:
+        return False
+    return enclosed_by_wall(values, box, params, sides=_sides(box, ground, t0, cell, params)[:3] + (False,))
 
 
 def enclosed_by_wall(values: np.ndarray, rect: tuple[int, int, int, int], params: FacadeParams,
@@ -768,28 +787,37 @@ def glazed_doors(openings: list[Opening], values: np.ndarray, depths: WallDepths
     ground line and whose top lies a door's height above it (``door_min_height`` less ``glazed_frame_max``, the
     leaf's frame above the pane, .. ``door_max_height``; the grown door must have a door's size), no wider
     than ``open_door_max_width``, becomes a door when the cells below it down to the ground line are mostly observed
-    and lie behind the wall beside them at the same heights: their median depth at least ``evidence.leaf_offset``
+    (or ``glazed_seen_rows`` rows' worth, the rest hidden by a parked car) and lie behind the wall beside them at
+    the same heights: their median depth at least ``evidence.leaf_offset``
     behind that wall's, and 60 % of them half that (holes and leaf cells count as behind). A window on a sill has
     wall below it, as deep as the wall beside it. The door reaches the ground line and grows sideways and up by the
     leaf around the pane (lines of cells mostly behind the wall, at most ``glazed_frame_max``). Two such doors
-    side by side (at most ``glazed_frame_max`` apart, tops as close) are the two panes of one double door."""
+    side by side (at most ``glazed_frame_max`` apart, tops as close) are the two panes of one double door. A door
+    made is leaf, not wall beside, for the panes tested after it (the other pane of a double door)."""
     if not params.openings.glazed_doors:
         return []
     made: list[tuple[Opening, np.ndarray]] = []
-    for o in openings:
-        if o.kind is not ElementKind.WINDOW or o.bounds is None or o.rect is None:
-            continue
-        cells = _glazed_door_cells(o, values, depths, ground, t0, cell, params)
-        if cells is None:
-            continue
-        r0, r1, c0, c1 = cells
-        o.kind, o.kind_undecided, o.rect = ElementKind.DOOR, False, cells
-        o.bounds = (min(o.bounds[0], s0 + c0 * cell), max(o.bounds[1], s0 + c1 * cell),
-                    float(np.mean(ground[c0:c1])), max(o.bounds[3], t0 + r1 * cell))
-        new = np.zeros(values.shape, dtype=bool)
-        new[r0:r1, c0:c1] = True
-        made.append((o, new & ~o.mask))
-    return _pair_double_doors(openings, made, params.openings.glazed_frame_max)
+    leaves = np.zeros(values.shape, dtype=bool) if depths.leaves is None else depths.leaves.copy()
+    while True:  # a door made is leaf, not wall beside the next pane (the other leaf of a double door)
+        found = False
+        for o in openings:
+            if o.kind is not ElementKind.WINDOW or o.bounds is None or o.rect is None:
+                continue
+            cells = _glazed_door_cells(o, values, WallDepths(depths.offset, depths.count, leaves), ground, t0,
+                                       cell, params)
+            if cells is None:
+                continue
+            r0, r1, c0, c1 = cells
+            o.kind, o.kind_undecided, o.rect = ElementKind.DOOR, False, cells
+            o.bounds = (min(o.bounds[0], s0 + c0 * cell), max(o.bounds[1], s0 + c1 * cell),
+                        float(np.mean(ground[c0:c1])), max(o.bounds[3], t0 + r1 * cell))
+            new = np.zeros(values.shape, dtype=bool)
+            new[r0:r1, c0:c1] = True
+            made.append((o, new & ~o.mask))
+            leaves |= new
+            found = True
+        if not found:
+            return _pair_double_doors(openings, made, params.openings.glazed_frame_max)
 
 
 def _glazed_door_cells(o: Opening, values: np.ndarray, depths: WallDepths, ground: np.ndarray, t0: float,
@@ -847,15 +875,21 @@ class _LeafTest:
         wall = side[None, :] & (n > 0) & (values[rows] == OBJECT) & ~leaf
         self.ref = float(np.median(off[wall])) if wall.sum() >= 10 else None
         self.seen = hole | leaf | (n > 0)
+        self.measured = (n > 0) & ~hole  # cells whose returns give a depth (not a pulse through the plane)
         self.depth = np.where(hole | leaf, -np.inf, np.where(n > 0, off, np.nan))
         half = 0.5 * params.evidence.leaf_offset
         self.deep = self.seen & (self.depth <= (np.inf if self.ref is None else self.ref - half))
 
     def share(self, c0: int, c1: int) -> float | None:
-        """The share of the observed cells of columns ``c0:c1`` that lie behind the wall (None: under half of
-        them observed, or no wall beside)."""
+        """The share of the observed cells of columns ``c0:c1`` that lie behind the wall (None: no wall beside,
+        or under half of them observed, unless the cells with returns make ``glazed_seen_rows`` rows' worth: a
+        parked car hides most of a leaf below a pane, its lowest rows seen beneath the car's body; holes do not
+        count there, the ragged bottom of a hole below its fitted rectangle is no leaf)."""
         seen = self.seen[:, c0:c1]
-        if self.ref is None or seen.sum() < max(2, 0.5 * seen.size):
+        if self.ref is None or seen.sum() < 2:
+            return None
+        rows = self.params.openings.glazed_seen_rows
+        if seen.sum() < 0.5 * seen.size and (rows <= 0 or self.measured[:, c0:c1].sum() < rows * (c1 - c0)):
             return None
         return float(self.deep[:, c0:c1][seen].mean())
 

@@ -388,10 +388,21 @@ class OpeningParams:
         pane of a glazed door when the cells below it down to the ground line lie behind the wall beside them
         (evidence.leaf_offset): it becomes a door reaching the ground line, grown by the leaf around the pane
         (:func:`lidarmap.facade.openings.glazed_doors`) ...
-    glazed_sill_min (0.5), glazed_sill_max (1.6): ... (a pane starts 1.0-1.2 m above the threshold, up to 0.5 m of
-        steps above the street) ...
+    glazed_sill_min (0.3), glazed_sill_max (1.6): ... (a pane starts 0.5-1.2 m above the threshold, up to 0.5 m of
+        steps above the street; 0.3 m is three rows of leaf to judge: a double door's panes 0.49 m over the
+        landing of its steps stayed a window, independent dev seed 6, issue 18 round 36) ...
     glazed_frame_max (0.3): ... the leaf around the pane is at most this wide, and two panes at most this far
         apart with tops as close are one double door.
+    glazed_seen_rows (2): ... the cells below the pane are judged when half of them were observed, or at least
+        this many rows' worth (a parked car hides the leaf, its lowest rows seen beneath the car's body: the
+        double door of independent dev seed 8 was two windows, issue 18 round 36); 0: half always.
+    top_cut_windows (True): a hole the grid's top border cuts (the campaign saw the façade only up to there: a
+        multibeam scanner's upper beam), away from its left and right borders, with wall on its left and right and
+        below it (none below a door-tall hole from the ground line), is a window or door up to that border, not
+        an unknown region (independent dev seeds 6 and 21: shop windows seen up to 3.3 m of their 4 m, a door up
+        to 2.15 m; :func:`lidarmap.facade.openings.top_cut`) ...
+    top_cut_min_height (1.0): ... when its cells span at least this height below the border (a strip of holes
+        under the eave, 0.4 m, became a false window on hard dev seed 416).
     recessed_windows (False): a rectangular region of a recessed layer (fill >= Ta, opening-sized) that is not a
         door is a WINDOW (glass with blinds or curtains returns the laser a few cm to dm behind the wall);
         False keeps it a STRUCTURE.
@@ -467,6 +478,8 @@ class OpeningParams:
         "inside_structure_sigma": ">= 0",
         "glazed_sill_max": ">= 0",
         "glazed_frame_max": ">= 0",
+        "glazed_seen_rows": ">= 0",
+        "top_cut_min_height": ">= 0",
         "behind_structure_reach": ">= 0",
         "min_unknown_area": ">= 0",
     }
@@ -523,9 +536,12 @@ class OpeningParams:
     inside_structure_depth: float = 0.2
     inside_structure_sigma: float = 0.04
     glazed_doors: bool = True
-    glazed_sill_min: float = 0.5
+    glazed_sill_min: float = 0.3
     glazed_sill_max: float = 1.6
     glazed_frame_max: float = 0.3
+    glazed_seen_rows: int = 2
+    top_cut_windows: bool = True
+    top_cut_min_height: float = 1.0
     recessed_windows: bool = False
     complete_by_repetition: bool = True
     complete_behind_structures: bool = True
