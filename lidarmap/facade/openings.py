@@ -833,7 +833,7 @@ def _glazed_door_cells(o: Opening, values: np.ndarray, depths: WallDepths, groun
         return None
     if o.bounds[1] - o.bounds[0] > op.open_door_max_width:
         return None  # wider than a leaf: a shop window on a stall riser
-    g_row = max(int(math.floor((g - t0) / cell + 0.5)), 0)
+    g_row = _ground_row(g, t0, cell)
     if r0 - g_row < 3:
         return None
     reach = max(int(round(op.glazed_frame_max / cell)), 0)

@@ -393,9 +393,10 @@ class OpeningParams:
         landing of its steps stayed a window, independent dev seed 6, issue 18 round 36) ...
     glazed_frame_max (0.3): ... the leaf around the pane is at most this wide, and two panes at most this far
         apart with tops as close are one double door.
-    glazed_seen_rows (2): ... the cells below the pane are judged when half of them were observed, or at least
-        this many rows' worth (a parked car hides the leaf, its lowest rows seen beneath the car's body: the
-        double door of independent dev seed 8 was two windows, issue 18 round 36); 0: half always.
+    glazed_seen_rows (2): ... the cells below the pane are judged when half of them were observed, or when those
+        with returns (not holes) make at least this many rows' worth (a parked car hides the leaf, its lowest rows
+        seen beneath the car's body: the double door of independent dev seed 8 was two windows, issue 18 round
+        36); 0: half always.
     top_cut_windows (True): a hole the grid's top border cuts (the campaign saw the façade only up to there: a
         multibeam scanner's upper beam), away from its left and right borders, with wall on its left and right and
         below it (none below a door-tall hole from the ground line), is a window or door up to that border, not
