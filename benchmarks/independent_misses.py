@@ -5,6 +5,8 @@ benchmarks/cityjson_scores.py matches them), listed, and one PNG per façade wit
 ``python benchmarks/independent_misses.py SCENE_DIR EXPORT.city.json --key 1-2 [--campaigns 1,2] [--png OUT_DIR]``
 
 For diagnosis on development seeds only (a reserved seed's folder is refused: its ``truth.json`` names the seed).
+A hard-family scene of bench_independent's work folder (``hard_SEED``, its ``truth_independent.json``) works too;
+its seed comes from the folder's name.
 """
 
 from __future__ import annotations
@@ -64,11 +66,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--campaigns", default="1")
     ap.add_argument("--png", type=Path, default=None)
     args = ap.parse_args(argv)
+    from lidarmap.sim.family import EVAL_SEEDS as HARD_EVAL_SEEDS
     from lidarmap.sim.independent import EVAL_SEEDS
 
-    if json.loads((args.scene / "truth.json").read_text()).get("seed") in EVAL_SEEDS:
-        ap.error("reserved evaluation seed: figures only, no diagnosis")
-    truth = cs.load_truth(args.scene / "truth.json")
+    # an independent scene's truth, or the one bench_independent wrote for a hard-family scene (folder hard_SEED)
+    truth_path = args.scene / "truth.json"
+    if truth_path.exists():
+        reserved = json.loads(truth_path.read_text()).get("seed") in EVAL_SEEDS
+    else:
+        truth_path = args.scene / "truth_independent.json"
+        tail = args.scene.resolve().name.rsplit("_", 1)[-1]
+        reserved = not tail.isdigit() or int(tail) in HARD_EVAL_SEEDS
+    if reserved:
+        ap.error("reserved evaluation seed (or a scene whose seed is unknown): figures only, no diagnosis")
+    truth = cs.load_truth(truth_path)
     doc = json.loads(args.export.read_text())
     facades = list(truth.facades.values())
     placed: dict[int, list] = {f.id: [] for f in facades}

@@ -614,6 +614,27 @@ def test_a_hole_inside_an_oriel_is_no_window_of_the_wall():
     assert inside_structures(off, front, FacadeParams().updated(inside_structure_max=1.0)) == []
 
 
+def test_an_oriel_fitted_5_cm_wide_by_a_later_campaign_still_covers_its_floors():
+    """Independent dev seed 1 (issue 18 round 37): campaign 3, fitted in the frame campaigns 1 and 2 had stored,
+    found the oriel's face 0.75 m proud with σ 5.5 cm (GNSS drift between campaigns widens it), above
+    ``inside_structure_sigma`` 0.04; its three floors became windows of the wall and two stayed. A plane's σ of a
+    few cm counts; clutter's broad layer (σ 0.4 m: shrubs, railings) does not."""
+    import types
+
+    from lidarmap.facade.model import Layer
+    from lidarmap.facade.observe import _front_cells
+
+    layers = [Layer(0, 0.0, 0.02, 0.6), Layer(1, 0.75, 0.055, 0.3), Layer(2, 0.8, 0.4, 0.1)]
+    dominant = np.zeros((60, 40), dtype=np.int64)
+    dominant[30:60, 0:15] = 1  # the oriel
+    dominant[0:20, 25:40] = 2  # shrubs
+    surf = types.SimpleNamespace(layers=layers, main=layers[0], dominant=dominant, shape=dominant.shape)
+    op = FacadeParams().openings
+    front = _front_cells(surf, op.inside_structure_depth, op.inside_structure_sigma)
+    np.testing.assert_array_equal(front, dominant == 1)
+    assert not _front_cells(surf, op.inside_structure_depth, 0.04).any()
+
+
 def test_the_wall_behind_an_oriel_votes_against_a_later_campaigns_window_there():
     """Independent dev seeds 1 and 2 (issue 18 round 32): campaigns 1 and 2 saw an oriel and stored no window of the
     wall behind it, but their cells there cast no vote; campaign 3, whose layer fit did not separate the oriel,
@@ -1374,6 +1395,36 @@ def test_ground_line_drops_sparse_bins_and_keeps_the_street_slope_beyond_its_las
     assert every_bin[(s_mid > 5.0) & (s_mid < 9.5)].min() > 2.5
 
 
+def test_ground_line_beyond_a_van_that_hides_the_pavement_comes_from_the_street_past_it():
+    """Independent dev seed 2 (issue 18 round 37): a van parked along a wall hid the pavement in front of it; with
+    no ground within ``ground_band`` the grid's bottom, 0.5 m above a door's threshold, was taken for the ground
+    line and the door, seen from there up, became a window. The road beyond the van (``ground_far_band``), raised by
+    a curb (``ground_far_curb``), gives the line; with the far band off, the grid's bottom does."""
+    from lidarmap.core import Trajectory
+    from lidarmap.facade.campaign import campaign_data
+    from lidarmap.facade.model import FacadeFrame
+    from lidarmap.facade.observe import _ground_line
+
+    rng = np.random.default_rng(3)
+    street = np.column_stack([rng.uniform(0.0, 10.0, 1500), rng.uniform(-9.0, -4.5, 1500), np.zeros(1500)])
+    street[:, 2] = -0.15 + 0.03 * street[:, 0]  # the road, a curb below the pavement, rising 3 % along the wall
+    traj = Trajectory(time=np.array([0.0, 1.0]), xyz=np.array([[0.0, -7.0, 2.0], [10.0, -7.0, 2.2]]))
+    params = FacadeParams()
+    camp = campaign_data(street, np.zeros(len(street)), np.ones(len(street), dtype=bool),
+                         np.zeros(len(street), dtype=bool), traj, (0.0, 0.0, 0.0), traj.xyz, street.min(axis=0), params)
+    frame = FacadeFrame(origin=np.zeros(3), u=np.array([1.0, 0.0, 0.0]))
+    cols, cell = 100, 0.1
+    s_mid = (np.arange(cols) + 0.5) * cell
+    line = _ground_line(camp, frame, 0.0, 10.0, 0.5, cols, cell, params)
+    np.testing.assert_allclose(line, 0.03 * s_mid, atol=0.06)  # the road's level raised by a curb: the pavement's
+    road = _ground_line(camp, frame, 0.0, 10.0, 0.5, cols, cell, params.updated(ground_far_curb=0.0))
+    np.testing.assert_allclose(road, -0.15 + 0.03 * s_mid, atol=0.06)
+    off = _ground_line(camp, frame, 0.0, 10.0, 0.5, cols, cell,
+                       params.updated(ground_far_band=params.openings.ground_band))
+    np.testing.assert_array_equal(off, np.full(cols, 0.5))  # no street measured: the grid's bottom
+    assert np.all(_ground_line(camp, frame, 0.0, 10.0, 0.5, cols, cell, params.updated(ground_far_band=4.4)) == 0.5)
+
+
 def test_ground_line_ignores_ground_labelled_points_on_a_vans_roof():
     """Independent dev seed 8 (issue 18 round 34): a van 1.45 m tall parked in front of a double door hid the street
     there, and the ground filter labelled 12-17 of its roof's returns per metre ground: enough for a bin of the
@@ -1572,6 +1623,55 @@ def test_the_top_of_a_door_seen_above_a_van_is_unknown_not_a_window():
     values[0:32, 5:30] = OCCLUDED  # a tree hides the ground floor
     values[32:40, 10:20] = HOLE  # a first-floor window, its top 4.0 m up: no door
     assert kinds(values) == [ElementKind.WINDOW]
+
+
+def test_a_door_whose_foot_a_car_hides_is_a_door_down_to_the_ground_line():
+    """Issue 18 round 37 (independent dev seeds 2 and 5): a car's bonnet, bins or a bicycle hid the lowest 0.4-0.5 m
+    in front of a door; the door seen above them was stored as a window 1.7 m tall. Seen from no higher than
+    ``hidden_foot_max`` above the ground line, no wider than a door leaf, with nothing observed below it and
+    door-sized if it reached the ground, it is a door down to the ground line. Wall seen below it, a shop window's
+    width, a bottom seen higher up, or the rule off keep it a window."""
+    from lidarmap.facade.openings import HOLE, OBJECT, OCCLUDED, detect_openings
+
+    def found(values, params=FacadeParams()):
+        return [op for op in detect_openings(values, 0.1, params, ground_t=np.zeros(50)) if op.n_cells > 20]
+
+    values = np.full((60, 50), OBJECT, dtype=np.int8)
+    values[0:5, 5:30] = OCCLUDED  # the bonnet's shadow, 0.5 m tall
+    values[5:22, 10:20] = HOLE  # seen from 0.5 m to 2.2 m up, 1.0 m wide
+    [door] = found(values)
+    assert door.kind is ElementKind.DOOR and door.rect[0] == 0
+    assert door.bounds[2] == pytest.approx(0.0) and door.bounds[3] == pytest.approx(2.2, abs=0.05)
+    assert [op.kind for op in found(values, FacadeParams().updated(hidden_foot_max=0.0))] == [ElementKind.WINDOW]
+    wide = values.copy()
+    wide[5:22, 10:30] = HOLE  # 2.0 m wide: wider than open_door_max_width, a shop window on a low sill
+    assert [op.kind for op in found(wide)] == [ElementKind.WINDOW]
+    values[2:5, 5:30] = OBJECT  # wall seen below it: a window on a 0.5 m sill
+    assert [op.kind for op in found(values)] == [ElementKind.WINDOW]
+    values[0:8, 5:30] = OCCLUDED
+    values[8:22, 10:20] = HOLE  # seen from 0.8 m up: its bottom may be a sill
+    assert [op.kind for op in found(values)] == [ElementKind.WINDOW]
+
+
+def test_a_hole_mostly_below_the_ground_line_is_no_window():
+    """Independent dev seed 2 (issue 18 round 37): pulses crossed the wall plane under a shop window down to 0.4 m
+    below the pavement (a light well, a grating); the strip 0.5 m tall became a window. A hole more than
+    ``underground_max`` of whose cells lie below the ground line is an unknown region; a door standing on the ground
+    line is none of it."""
+    from lidarmap.facade.openings import HOLE, OBJECT, detect_openings
+
+    def found(values, params=FacadeParams()):
+        ops = detect_openings(values, 0.1, params, ground_t=np.full(60, 0.4))
+        return sorted((op.kind.value, op.rect[0] if op.rect else None) for op in ops if op.n_cells > 20)
+
+    values = np.full((60, 60), OBJECT, dtype=np.int8)
+    values[0:9, 5:25] = HOLE  # 0-0.9 m: 0.4 m below the ground line, 0.5 m above it
+    assert found(values) == [("window", 0)]  # a third of its cells below: a low window
+    values[0:9, 5:25] = OBJECT
+    values[0:5, 5:25] = HOLE  # 0-0.5 m: 60 % of its cells below
+    values[4:26, 35:45] = HOLE  # a door from the ground line up
+    assert found(values) == [("door", 4), ("unknown", None)]
+    assert found(values, FacadeParams().updated(underground_max=1.0)) == [("door", 4), ("window", 0)]
 
 
 # ----------------------------------------------------------------------------------------------------------------------

@@ -47,7 +47,7 @@ def _facade_coords(f: dict, xyz: np.ndarray):
 
 
 def test_seed_ranges_are_disjoint():
-    assert len(EVAL_SEEDS) == 50 and min(EVAL_SEEDS) > max(DEV_SEEDS)  # named nowhere in the tests
+    assert len(EVAL_SEEDS) == 150 and min(EVAL_SEEDS) > max(DEV_SEEDS)  # named nowhere in the tests
     assert not set(EVAL_SEEDS) & set(DEV_SEEDS)
 
 

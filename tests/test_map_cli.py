@@ -233,6 +233,48 @@ def _far_footprints(sim, tmp_path: Path) -> Path:
     return out
 
 
+def _footprint_where_nothing_was_seen(sim, tmp_path: Path) -> Path:
+    """One footprint 1 m square inside the box of campaign 2's points, at the spot farthest from every point."""
+    import pyproj
+    from scipy.spatial import cKDTree
+
+    from lidarmap.io.las import read_las
+
+    cloud = read_las(sim.mls[1])
+    xy = cloud.xyz[:, :2]
+    (x0, y0), (x1, y1) = xy.min(axis=0), xy.max(axis=0)
+    gx, gy = np.meshgrid(np.linspace(x0 + 1, x1 - 1, 60), np.linspace(y0 + 1, y1 - 1, 60))
+    spots = np.column_stack([gx.ravel(), gy.ravel()])
+    gap, _ = cKDTree(xy).query(spots)
+    x, y = spots[np.argmax(gap)]
+    assert gap.max() > 4.0  # no point, building or other, within 4 m of it
+    to_lonlat = pyproj.Transformer.from_crs(cloud.crs, "EPSG:4326", always_xy=True)
+    ring = [to_lonlat.transform(x + dx, y + dy) for dx, dy in ((-.5, -.5), (.5, -.5), (.5, .5), (-.5, .5), (-.5, -.5))]
+    doc = json.loads(sim.footprints.read_text())
+    doc["features"] = doc["features"][:1]
+    doc["features"][0]["geometry"]["coordinates"] = [[list(p) for p in ring]]
+    out = tmp_path / "empty.geojson"
+    out.write_text(json.dumps(doc))
+    return out
+
+
+def test_a_campaign_that_saw_none_of_the_mapped_buildings_changes_no_building(sim, map_copy, tmp_path) -> None:
+    """Issue 18 round 37: within the box of a campaign's points, footprints none of whose buildings it saw (a street
+    of unmapped houses) are no input error: a warning, the campaign recorded, no building changed. Footprints away
+    from the points stay an error ("far footprints" above)."""
+    street = _footprint_where_nothing_was_seen(sim, tmp_path)
+    with MapStore.open(map_copy) as store:
+        before = store.load()
+    code, out, err = run("map", "update", map_copy, *_args(sim, ["--footprints", street, "--points", sim.mls[1],
+                                                                 "--trajectory", sim.trajectories[1]]))
+    assert code == 0, err
+    assert "saw none of the mapped buildings; no building changes" in err + out
+    with MapStore.open(map_copy) as store:
+        assert [c.campaign_id for c in store.campaigns()] == [1, 2]
+        after = store.load()
+    assert count_map(after) == count_map(before) and set(after.buildings) == set(before.buildings)
+
+
 def _corrupt_laz(sim, tmp_path: Path) -> Path:
     """64 kB of the compressed point data overwritten (a few kB may only hit an attribute layer LAZ cannot check)."""
     data = bytearray(sim.mls[0].read_bytes())

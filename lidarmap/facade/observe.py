@@ -587,10 +587,11 @@ def _in_front(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, inde
 
 
 def _ground_on_objects(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, bins: np.ndarray,
-                       low: np.ndarray, level: np.ndarray, params: FacadeParams) -> np.ndarray:
+                       low: np.ndarray, level: np.ndarray, band: float, params: FacadeParams) -> np.ndarray:
     """Per ground bin of :func:`_ground_line` (``bins`` along the wall, their low heights ``low`` and how many of
     their ground points lie within ``ground_share_band`` of it, ``level``), whether that height is no street's:
-    none of its ground points lie there (the 20th percentile fell between the pavement and a roof), or the band's
+    none of its ground points lie there (the 20th percentile fell between the pavement and a roof), or the
+    ``band``'s
     non-ground returns within ``ground_share_band`` of it outnumber them so that they make less than
     ``ground_min_share`` of the returns there. A ground filter labels a few points of a van's roof ground among
     the roof's many other returns; a street's returns are ground (issue 18 round 34, independent dev seed 8: 12-17
@@ -599,7 +600,7 @@ def _ground_on_objects(camp: CampaignData, frame: FacadeFrame, s0: float, s1: fl
     op = params.openings
     if op.ground_min_share <= 0:
         return np.zeros(len(bins), dtype=bool)
-    o = _in_front(camp, frame, s0, s1, camp.nonground_index, camp.nonground_ids, op.ground_band)
+    o = _in_front(camp, frame, s0, s1, camp.nonground_index, camp.nonground_ids, band)
     others = np.zeros(len(bins), dtype=np.int64)
     if len(o):
         b = np.floor((o[:, 0] - s0) / op.ground_bin).astype(np.int64)
@@ -900,27 +901,43 @@ def _ground_line(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, t
     a band ``ground_band`` in front of the wall, per ``ground_bin`` along it, median-filtered over 3 bins and
     interpolated from the bins holding at least ``ground_min_points`` (a few points labelled ground on a van's roof
     or a wall are not the street), extrapolated beyond them along the straight line fitted to them (a sloping
-    street: 4 m past the last bin a constant height put a door's foot 0.37 m above it, a window; dev seed 134);
-    the grid's bottom ``t0`` where no bin holds that many."""
-    s_mid = s0 + (np.arange(cols) + 0.5) * cell
+    street: 4 m past the last bin a constant height put a door's foot 0.37 m above it, a window; dev seed 134).
+    Where no bin holds that many, the same from the ground points up to ``ground_far_band`` in front, raised by
+    ``ground_far_curb`` (a van parked at the curb hid the pavement: the road beyond it lies a curb lower); the
+    grid's bottom ``t0`` where none does either."""
     if camp.ground_index is None:
         return np.full(cols, t0)
-    g = _in_front(camp, frame, s0, s1, camp.ground_index, camp.ground_ids, params.openings.ground_band)
+    op = params.openings
+    for band, rise in ((op.ground_band, 0.0), (op.ground_far_band, op.ground_far_curb)):
+        line = _ground_line_within(camp, frame, s0, s1, cols, cell, band, params) if band > 0 else None
+        if line is not None:
+            return line + rise
+        if op.ground_far_band <= op.ground_band:
+            break
+    return np.full(cols, t0)
+
+
+def _ground_line_within(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, cols: int, cell: float,
+                        band: float, params: FacadeParams) -> np.ndarray | None:
+    """:func:`_ground_line` from the ground points up to ``band`` in front of the wall; ``None`` where no bin holds
+    enough of them."""
+    s_mid = s0 + (np.arange(cols) + 0.5) * cell
+    g = _in_front(camp, frame, s0, s1, camp.ground_index, camp.ground_ids, band)
     if len(g) < 3:
-        return np.full(cols, t0)
+        return None
     bins = np.floor((g[:, 0] - s0) / params.openings.ground_bin).astype(np.int64)
     order = np.argsort(bins, kind="stable")
     uniq, start, count = np.unique(bins[order], return_index=True, return_counts=True)
     full = count >= params.openings.ground_min_points
     if not full.any():
-        return np.full(cols, t0)
+        return None
     heights = [g[order[a:a + n], 1] for a, n in zip(start[full], count[full])]
     low = np.array([np.quantile(h, 0.2) for h in heights])
     level = np.array([np.count_nonzero(np.abs(h - lo) <= params.openings.ground_share_band)
                       for h, lo in zip(heights, low)])
-    on_object = _ground_on_objects(camp, frame, s0, s1, uniq[full], low, level, params)
+    on_object = _ground_on_objects(camp, frame, s0, s1, uniq[full], low, level, band, params)
     if on_object.all():
-        return np.full(cols, t0)
+        return None
     low, uniq = low[~on_object], uniq[full][~on_object]
     if len(low) >= 3:  # a bin of mislabelled points (a car hid the street) must not lift the ground
         padded = np.concatenate([low[:1], low, low[-1:]])

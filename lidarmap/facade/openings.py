@@ -326,8 +326,10 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
             hidden = occ_border > params.openings.occlusion_touch_max and not enclosed_by_wall(
                 work, rect, params, sides=sides)
         # a gap whose cells span less than min_opening_size both ways is no opening, however far the half-cell
-        # growth of sides without wall samples (edge_bias_cells) carries its box
-        gap = max(rect[1] - rect[0], rect[3] - rect[2]) * cell < params.openings.min_opening_size - 1e-9
+        # growth of sides without wall samples (edge_bias_cells) carries its box; nor is a hole mostly below the
+        # ground line (pulses that crossed the wall plane under the pavement: a light well, a grating)
+        gap = max(rect[1] - rect[0], rect[3] - rect[2]) * cell < params.openings.min_opening_size - 1e-9 \
+            or underground_share(mask, ground, t0, cell) > params.openings.underground_max
         if hidden or gap or eps > params.openings.max_window_uncertainty \
                 or min(width, height) < params.openings.min_opening_size:
             unknown.rect = seen_rect if hidden else None
@@ -338,9 +340,10 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         kind, undecided = door_or_window_verdict(bounds, ground_here, mask, opaque, params, width_cut=width_cut)
         if cut is not None:  # wall closes it below: no door, whatever the ground line of a wall seen this little
             kind, undecided = ElementKind.WINDOW, False
-        elif kind is ElementKind.WINDOW and low is None and hidden_leaf_door(
-                work, rect, bounds, ground_here, t0, cell, mask, opaque, params, width_cut):
-            kind, undecided = ElementKind.DOOR, False  # a leaf whose lower part was hidden: it reaches the ground
+        elif kind is ElementKind.WINDOW and low is None and (
+                hidden_leaf_door(work, rect, bounds, ground_here, t0, cell, mask, opaque, params, width_cut)
+                or hidden_foot_door(work, rect, bounds, ground_here, t0, cell, params, width_cut)):
+            kind, undecided = ElementKind.DOOR, False  # a door whose lower part was hidden: it reaches the ground
             rect = (_ground_row(ground_here, t0, cell),) + tuple(rect[1:])
             bounds = (bounds[0], bounds[1], ground_here, bounds[3])
         elif kind is ElementKind.WINDOW and low is None \
@@ -410,6 +413,17 @@ def _sides(rect: tuple[int, int, int, int], ground: np.ndarray, t0: float, cell:
     return (True, True, not at_ground, True)
 
 
+def underground_share(mask: np.ndarray, ground: np.ndarray, t0: float, cell: float) -> float:
+    """The share of a hole's cells (``mask``) whose centre lies more than half a cell below the ground line of
+    their column (``ground``, façade t; grid bottom ``t0``). Independent dev seed 2 (issue 18 round 37): a strip
+    0.5 m tall under a shop window, 0.4 m of it below the pavement, was a window."""
+    rows, cols = np.nonzero(mask)
+    if len(rows) == 0:
+        return 0.0
+    centres = t0 + (rows + 0.5) * cell
+    return float(np.mean(centres < ground[cols] - 0.5 * cell))
+
+
 def below_floor_level(openings: list[Opening], ground: np.ndarray, params: FacadeParams) -> int:
     """Doors lifted above the ground line (more than ``door_bottom_tol``; typed doors by their leaf within
     ``door_leaf_tol``) that start more than ``door_floor_tol`` above the lowest door-tall opening of the same
@@ -465,6 +479,20 @@ def hidden_leaf_door(values: np.ndarray, rect: tuple[int, int, int, int], bounds
         return False
     share = _leaf_share(mask, opaque)
     if len(share) == 0 or float(share.mean()) < params.evidence.opaque_share:
+        return False
+    return _hidden_to_ground(values, rect, bounds, ground, t0, cell, params, width_cut)
+
+
+def hidden_foot_door(values: np.ndarray, rect: tuple[int, int, int, int], bounds: tuple[float, float, float, float],
+                     ground: float, t0: float, cell: float, params: FacadeParams, width_cut: bool = False) -> bool:
+    """Whether a window is a door whose foot the campaign did not see: seen from no higher than
+    ``hidden_foot_max`` above the ground line, no wider than ``open_door_max_width``, with its cells down to the
+    ground line hidden as :func:`door_below_hidden` asks (mostly not observed, no row of mostly observed wall,
+    door-sized if it reached the ground). What hides the lowest half metre of a wall (a car's bonnet, bins,
+    bicycles) leaves a door's upper 1.7 m; a window that low on its sill and door-tall is rarer (issue 18 round
+    37, independent dev seeds 2 and 5: doors seen from 0.4 m above their threshold were stored as windows)."""
+    op = params.openings
+    if bounds[2] - ground > op.hidden_foot_max or bounds[1] - bounds[0] > op.open_door_max_width:
         return False
     return _hidden_to_ground(values, rect, bounds, ground, t0, cell, params, width_cut)
 

@@ -349,6 +349,9 @@ class OpeningParams:
         pulses back from just behind the wall), seen from within door_leaf_tol of the ground line, with its cells
         down to the ground line hidden as hidden_bottom_unknown asks, is a door reaching the ground line (a glass
         pane lets most pulses through or returns a share; issue 18 round 34).
+    hidden_foot_max (0.6): a window seen from no higher than this above the ground line, no wider than
+        open_door_max_width, with its cells down to the ground line hidden as hidden_bottom_unknown asks, is a door
+        reaching the ground line (a car's bonnet or bins hid a door's foot; issue 18 round 37); 0 turns this off.
     ground_band (4.0): ground points up to this far in front of the wall give the ground line ...
     ground_bin (1.0): ... one low (20th percentile) height per this length along the wall ...
     ground_min_points (10): ... from bins holding at least this many ground points; the others take the height
@@ -359,6 +362,12 @@ class OpeningParams:
         points on a van's roof are a few among the roof's returns (issue 18 round 34); 0 turns the check off ...
     ground_max_slope (0.1): ... beyond the first and last such bins the line goes on at its fitted slope, at most
         this steep (a street's gradient; two bins of a sparse campaign gave 0.3) ...
+    ground_far_band (10.0), ground_far_curb (0.15): ... and where no bin within ground_band holds enough, the same
+        from the ground points up to ground_far_band in front, raised by ground_far_curb (a van parked at the curb
+        hid the pavement: the road beyond it lies about a curb lower; without the band the grid's bottom was taken
+        for the ground line, 0.5 m above a door's threshold, issue 18 round 37, dev seed 2; without the curb a
+        pavement 0.4 m above the road made two doors windows, hard dev seed 13); ground_far_band at most
+        ground_band turns this off ...
     ground_below_grid (0.15): ... and never lies more than this below the façade grid's bottom (a new façade's grid
         starts at its ground line: a later campaign's ground points far below it are a light well or a lower
         terrace, not the street in front of its doors; a large value turns this off) ...
@@ -375,14 +384,19 @@ class OpeningParams:
     door_max_width (3.5): ... and at most this wide (shop windows and glazed fronts are wider: windows) ...
     open_door_max_width (1.8): ... and wider than this only when closed by an opaque leaf (garage doors; glazed
         shop fronts 2-4 m wide with a sill near the ground let most pulses through: windows).
+    underground_max (0.5): a hole more than this share of whose cells lie below the ground line of their column
+        (pulses that crossed the wall plane under the pavement: a light well, a grating) is no window or door but an
+        unknown region (independent dev seed 2, issue 18 round 37: a strip under a shop window); 1 turns this off.
     inside_structure_max (0.5): a window or door more than this share of whose hole cells lie where a layer in front
         of the wall was seen (an oriel, a bay window: the wall plane is open behind it) is an unknown region
         (:func:`lidarmap.facade.openings.inside_structures`); 1 turns this off ...
     inside_structure_depth (0.2): ... layers more than this in front of the wall count (an oriel stands 0.3 m
         and more proud; the two layers a rough or leaning wall may split into lie a few cm apart: at 5 cm, every
         window of one façade became unknown, independent dev seed 8) ...
-    inside_structure_sigma (0.04): ... and whose σ is at most this: an oriel's face is a plane (σ 1-2 cm); a broad
-        layer of clutter in front (σ 0.4 m: shrubs, railings) covered three windows of hard dev seed 410.
+    inside_structure_sigma (0.08): ... and whose σ is at most this: an oriel's face is a plane (σ 1-2 cm, 5.5 cm
+        where a later campaign fits it in the stored frame: at 0.04 two oriel "windows" came with campaign 3 of
+        independent dev seed 1, issue 18 round 37); a broad layer of clutter in front (σ 0.4 m: shrubs, railings)
+        covered three windows of hard dev seed 410.
     glazed_doors (True): a window whose bottom lies glazed_sill_min .. glazed_sill_max above the ground line and
         whose top a door's height (door_min_height .. door_max_height), no wider than open_door_max_width, is the
         pane of a glazed door when the cells below it down to the ground line lie behind the wall beside them
@@ -451,6 +465,8 @@ class OpeningParams:
         "door_floor_tol": ">= 0",
         "door_steps_tol": ">= 0",
         "ground_band": ">= 0",
+        "ground_far_band": ">= 0",
+        "ground_far_curb": ">= 0",
         "ground_bin": ">= 0",
         "ground_min_points": ">= 1",
         "ground_min_share": "[0, 1]",
@@ -466,6 +482,7 @@ class OpeningParams:
         "door_max_height": ">= 0",
         "door_tallest": ">= 0",
         "hidden_bottom_min_height": ">= 0",
+        "hidden_foot_max": ">= 0",
         "hole_open_cells": ">= 0",
         "bridge_cells": ">= 0",
         "occlusion_grow_cells": ">= 0",
@@ -475,6 +492,7 @@ class OpeningParams:
         "repetition_tol": ">= 0",
         "glazed_sill_min": ">= 0",
         "inside_structure_max": "[0, 1]",
+        "underground_max": "[0, 1]",
         "inside_structure_depth": ">= 0",
         "inside_structure_sigma": ">= 0",
         "glazed_sill_max": ">= 0",
@@ -508,6 +526,8 @@ class OpeningParams:
     door_floor_tol: float = 0.25
     door_steps_tol: float = 0.7
     ground_band: float = 4.0
+    ground_far_band: float = 10.0
+    ground_far_curb: float = 0.15
     ground_bin: float = 1.0
     ground_min_points: int = 10
     ground_min_share: float = 0.5
@@ -526,6 +546,7 @@ class OpeningParams:
     hidden_bottom_unknown: bool = True
     hidden_bottom_min_height: float = 1.2
     hidden_leaf_doors: bool = True
+    hidden_foot_max: float = 0.6
     hole_open_cells: int = 1
     bridge_cells: int = 2
     split_bridged: bool = True
@@ -534,8 +555,9 @@ class OpeningParams:
     door_min_width: float = 0.7
     open_door_max_width: float = 1.8
     inside_structure_max: float = 0.5
+    underground_max: float = 0.5
     inside_structure_depth: float = 0.2
-    inside_structure_sigma: float = 0.04
+    inside_structure_sigma: float = 0.08
     glazed_doors: bool = True
     glazed_sill_min: float = 0.3
     glazed_sill_max: float = 1.6

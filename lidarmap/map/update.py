@@ -545,7 +545,8 @@ def fuse_campaign(stored: BuildingMap, source: CampaignSource, trajectory: Traje
     ``failed``. ``progress(done, total)`` after every group of buildings. ``noise_factor`` widens the campaign's
     Gaussians in fusion (a campaign whose sensor path was estimated, :mod:`lidarmap.map.mls`). Raises
     :class:`~lidarmap.errors.InputError` for an empty campaign, missing GPS times, times the trajectory does not
-    cover, and a campaign none of whose building points lies near a footprint.
+    cover, and a campaign none of whose building points lies near a footprint when the footprints lie away from its
+    points (within their box it saw none of the mapped buildings: a warning, no building changes).
     """
     update = update or UpdateParams()
     tm = timings if timings is not None else {}
@@ -593,12 +594,24 @@ def _assemble(stored: BuildingMap, footprints: Footprints, outcomes: dict[int, A
         if outcome.building is not None:
             new_map.buildings[bid] = outcome.building
     if not joined and not failed:
-        raise no_join_error(stats.n_building, stats.bounds, footprints, fparams)
+        if not _boxes_meet(stats.bounds, footprints.bounds, fparams.join.max_footprint_distance):
+            raise no_join_error(stats.n_building, stats.bounds, footprints, fparams)
+        # the footprints lie where the campaign went, but it saw none of their buildings (a drive along a street
+        # of unmapped houses, a scanner facing away): the map has nothing to learn from it, which is no input error
+        # (issue 18 round 37: reserved independent scene 9049's third campaign stopped the whole run)
+        log.warning("%s: none of its %d building points lies within %g m of a footprint: it saw none of the mapped "
+                    "buildings; no building changes", stats.source or "the campaign", stats.n_building,
+                    fparams.join.max_footprint_distance)
     if failed and len(failed) == len(outcomes):  # committing would mark the campaign applied with nothing from it
         bid, reason = next(iter(failed.items()))
         raise InputError(f"the task of every building failed ({len(failed)}; {bid}: {reason}); nothing changed",
                          stats.source)
     return FusedCampaign(new_map, failed, stats)
+
+
+def _boxes_meet(a: tuple[float, float, float, float], b: tuple[float, float, float, float], margin: float) -> bool:
+    """Whether two xy boxes (x0, y0, x1, y1) overlap once grown by ``margin``."""
+    return a[0] - margin <= b[2] and b[0] - margin <= a[2] and a[1] - margin <= b[3] and b[1] - margin <= a[3]
 
 
 def extract_buildings(points: PointCloud, trajectory: Trajectory, footprints: Footprints, params: FacadeParams,
