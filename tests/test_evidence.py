@@ -734,6 +734,33 @@ def test_a_shop_window_or_door_the_campaigns_view_cuts_at_the_top_is_one_up_to_t
     assert np.allclose(ops[0].bounds, (5.0, 6.0, 0.0, 2.2), atol=0.06), ops[0].bounds
 
 
+def test_a_window_whose_top_the_view_cut_inside_the_grid_is_one_up_to_there():
+    """Independent dev seed 4 (issue 18 round 37): a multibeam campaign saw a side wall at a slant, its upper beam's
+    reach running diagonally across the grid; it cut a first-floor window's top corner, and the hole, wall left,
+    right and below it but not observed above, was an unknown region. Cells not observed right above it end its
+    seen part as the grid's top border would: a window up to there; not with ``top_cut_windows`` off, nor for a
+    strip under the unobserved band lower than ``top_cut_min_height``."""
+    from lidarmap.facade.openings import HOLE, OBJECT, OCCLUDED, detect_openings
+
+    def kinds(values, params=FacadeParams()):
+        return [op.kind for op in detect_openings(values, 0.1, params) if op.n_cells > 20]
+
+    # the view's edge, the shadow fringes of a slanted wall's reveals: a quarter of the border is enough here
+    fringe = FacadeParams().updated(occlusion_touch_max=0.25)
+    values = np.full((63, 120), OBJECT, dtype=np.int8)
+    for col in range(120):  # the view's upper limit: 6.2 m at the left, falling 1 m over 6 m to the right
+        values[62 - col // 6:, col] = OCCLUDED
+    values[46:61, 28:42] = HOLE  # the window, 4.6-6.1 m up; its top right corner beyond the view
+    values[56:61, 36:42] = OCCLUDED
+    ops = [op for op in detect_openings(values, 0.1, fringe) if op.n_cells > 20]
+    assert [op.kind for op in ops] == [ElementKind.WINDOW]
+    assert np.allclose(ops[0].bounds, (2.8, 4.2, 4.6, 6.1), atol=0.06), ops[0].bounds
+    assert kinds(values, fringe.updated(top_cut_windows=False)) == [ElementKind.UNKNOWN]
+    values[46:61, 28:42] = OBJECT
+    values[46:54, 78:90] = HOLE  # 0.8 m seen below the view's limit there: too little to call a window
+    assert kinds(values, fringe) == [ElementKind.UNKNOWN]
+
+
 def test_french_window_behind_a_balcony_parapet_reaches_down_to_it():
     """The parapet of a balcony (a layer in front of the wall) hides the lower part of the window above it from a
     scanner below: the window reaches down, across the occluded rows, to the parapet's top. A window whose lower

@@ -553,8 +553,9 @@ def _cut_side(values: np.ndarray, box: tuple[int, int, int, int], params: Facade
 
 def top_cut(values: np.ndarray, box: tuple[int, int, int, int], ground: np.ndarray, t0: float, cell: float,
             params: FacadeParams) -> bool:
-    """Whether a hole whose bounding box (r0, r1, c0, c1) the grid's top border cuts is the part of an opening seen
-    below it (``top_cut_windows``): away from the left and right borders, with wall on its left and right and below
+    """Whether a hole whose bounding box (r0, r1, c0, c1) the grid's top border cuts, or cells the campaign did not
+    observe close above (:func:`_unseen_above`), is the part of an opening seen below them (``top_cut_windows``):
+    away from the left and right borders, with wall on its left and right and below
     it (none below a door-tall box from the ground line, :func:`_sides`). A campaign whose view ends low (a
     multibeam scanner's upper beam at 2.1-3.3 m) cuts the grid there, across shop windows and doors: they were
     unknown regions (independent dev seeds 6 and 21, issue 18 round 36). The gap past a building's corner or the
@@ -563,9 +564,21 @@ def top_cut(values: np.ndarray, box: tuple[int, int, int, int], ground: np.ndarr
     r0, r1, c0, c1 = box
     rows, cols = values.shape
     op = params.openings
-    if not op.top_cut_windows or r1 != rows or c0 == 0 or c1 >= cols or (r1 - r0) * cell < op.top_cut_min_height:
+    if not op.top_cut_windows or c0 == 0 or c1 >= cols or (r1 - r0) * cell < op.top_cut_min_height:
+        return False
+    if r1 != rows and not _unseen_above(values, box, params):
         return False
     return enclosed_by_wall(values, box, params, sides=_sides(box, ground, t0, cell, params)[:3] + (False,))
+
+
+def _unseen_above(values: np.ndarray, box: tuple[int, int, int, int], params: FacadeParams) -> bool:
+    """Whether the cells within ``enclosed_reach_cells`` above a hole's bounding box (r0, r1, c0, c1) are mostly not
+    observed: the campaign's view ends there inside the grid (a multibeam scanner's upper beam runs diagonally
+    across a side wall seen at a slant, independent dev seed 4: a first-floor window whose top corner it cut was an
+    unknown region), or something in front hid it."""
+    r0, r1, c0, c1 = box
+    band = values[r1:r1 + max(params.openings.enclosed_reach_cells, 1), c0:c1]
+    return band.size > 0 and float(np.mean(band == OCCLUDED)) > 0.5
 
 
 def enclosed_by_wall(values: np.ndarray, rect: tuple[int, int, int, int], params: FacadeParams,

@@ -415,7 +415,9 @@ class OpeningParams:
         multibeam scanner's upper beam), away from its left and right borders, with wall on its left and right and
         below it (none below a door-tall hole from the ground line), is a window or door up to that border, not
         an unknown region (independent dev seeds 6 and 21: shop windows seen up to 3.3 m of their 4 m, a door up
-        to 2.15 m; :func:`lidarmap.facade.openings.top_cut`) ...
+        to 2.15 m; :func:`lidarmap.facade.openings.top_cut`); so is a hole whose top cells not observed close
+        above end inside the grid (the upper beam's reach running diagonally across a side wall seen at a slant,
+        independent dev seed 4, issue 18 round 37) ...
     top_cut_min_height (1.0): ... when its cells span at least this height below the border (a strip of holes
         under the eave, 0.4 m, became a false window on hard dev seed 416).
     recessed_windows (False): a rectangular region of a recessed layer (fill >= Ta, opening-sized) that is not a
