@@ -119,6 +119,12 @@ class Footprints:
     def bounds(self) -> tuple[float, float, float, float]:
         return tuple(shapely.total_bounds(self.polygons))  # type: ignore[return-value]
 
+    def meets(self, bounds: tuple[float, float, float, float], margin: float = 0.0) -> bool:
+        """Whether the footprints' bounding box overlaps the box ``bounds`` (x0, y0, x1, y1) grown by ``margin``."""
+        fx0, fy0, fx1, fy1 = self.bounds
+        x0, y0, x1, y1 = bounds
+        return fx1 >= x0 - margin and fx0 <= x1 + margin and fy1 >= y0 - margin and fy0 <= y1 + margin
+
     def subset(self, index: np.ndarray) -> "Footprints":
         index = np.asarray(index)
         if index.dtype == bool:

@@ -590,9 +590,8 @@ def _ground_on_objects(camp: CampaignData, frame: FacadeFrame, s0: float, s1: fl
                        low: np.ndarray, level: np.ndarray, band: float, params: FacadeParams) -> np.ndarray:
     """Per ground bin of :func:`_ground_line` (``bins`` along the wall, their low heights ``low`` and how many of
     their ground points lie within ``ground_share_band`` of it, ``level``), whether that height is no street's:
-    none of its ground points lie there (the 20th percentile fell between the pavement and a roof), or the
-    ``band``'s
-    non-ground returns within ``ground_share_band`` of it outnumber them so that they make less than
+    none of its ground points lie there (the 20th percentile fell between the pavement and a roof), or the non-ground
+    returns up to ``band`` in front within ``ground_share_band`` of it outnumber them so that they make less than
     ``ground_min_share`` of the returns there. A ground filter labels a few points of a van's roof ground among
     the roof's many other returns; a street's returns are ground (issue 18 round 34, independent dev seed 8: 12-17
     such points per bin on a van in front of a double door lifted the ground line 0.8 m above the door's
@@ -908,12 +907,12 @@ def _ground_line(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, t
     if camp.ground_index is None:
         return np.full(cols, t0)
     op = params.openings
-    for band, rise in ((op.ground_band, 0.0), (op.ground_far_band, op.ground_far_curb)):
-        line = _ground_line_within(camp, frame, s0, s1, cols, cell, band, params) if band > 0 else None
+    bands = [(op.ground_band, 0.0)] + ([(op.ground_far_band, op.ground_far_curb)]
+                                       if op.ground_far_band > op.ground_band else [])
+    for band, rise in bands:
+        line = _ground_line_within(camp, frame, s0, s1, cols, cell, band, params)
         if line is not None:
             return line + rise
-        if op.ground_far_band <= op.ground_band:
-            break
     return np.full(cols, t0)
 
 

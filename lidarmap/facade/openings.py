@@ -326,11 +326,11 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
             hidden = occ_border > params.openings.occlusion_touch_max and not enclosed_by_wall(
                 work, rect, params, sides=sides)
         # a gap whose cells span less than min_opening_size both ways is no opening, however far the half-cell
-        # growth of sides without wall samples (edge_bias_cells) carries its box; nor is a hole mostly below the
-        # ground line (pulses that crossed the wall plane under the pavement: a light well, a grating)
-        gap = max(rect[1] - rect[0], rect[3] - rect[2]) * cell < params.openings.min_opening_size - 1e-9 \
-            or underground_share(mask, ground, t0, cell) > params.openings.underground_max
-        if hidden or gap or eps > params.openings.max_window_uncertainty \
+        # growth of sides without wall samples (edge_bias_cells) carries its box
+        gap = max(rect[1] - rect[0], rect[3] - rect[2]) * cell < params.openings.min_opening_size - 1e-9
+        # nor is a hole mostly below the ground line (pulses that crossed the wall plane under the pavement)
+        underground = underground_share(mask, ground, t0, cell) > params.openings.underground_max
+        if hidden or gap or underground or eps > params.openings.max_window_uncertainty \
                 or min(width, height) < params.openings.min_opening_size:
             unknown.rect = seen_rect if hidden else None
             out.append(unknown)

@@ -187,7 +187,7 @@ def check_overlap(footprints: Footprints, bounds: tuple[float, float, float, flo
     """Refuse footprints whose bounding box misses the points' bounding box (wrong CRS, wrong file)."""
     fx0, fy0, fx1, fy1 = footprints.bounds
     px0, py0, px1, py1 = bounds
-    if fx1 < px0 or fx0 > px1 or fy1 < py0 or fy0 > py1:
+    if not footprints.meets(bounds):
         raise InputError(
             f"footprints do not overlap the points of {points_name}: footprints bbox "
             f"[{fx0:.2f}, {fy0:.2f}, {fx1:.2f}, {fy1:.2f}] vs points bbox [{px0:.2f}, {py0:.2f}, {px1:.2f}, {py1:.2f}]"

@@ -594,7 +594,7 @@ def _assemble(stored: BuildingMap, footprints: Footprints, outcomes: dict[int, A
         if outcome.building is not None:
             new_map.buildings[bid] = outcome.building
     if not joined and not failed:
-        if not _boxes_meet(stats.bounds, footprints.bounds, fparams.join.max_footprint_distance):
+        if not footprints.meets(stats.bounds, fparams.join.max_footprint_distance):
             raise no_join_error(stats.n_building, stats.bounds, footprints, fparams)
         # the footprints lie where the campaign went, but it saw none of their buildings (a drive along a street
         # of unmapped houses, a scanner facing away): the map has nothing to learn from it, which is no input error
@@ -607,11 +607,6 @@ def _assemble(stored: BuildingMap, footprints: Footprints, outcomes: dict[int, A
         raise InputError(f"the task of every building failed ({len(failed)}; {bid}: {reason}); nothing changed",
                          stats.source)
     return FusedCampaign(new_map, failed, stats)
-
-
-def _boxes_meet(a: tuple[float, float, float, float], b: tuple[float, float, float, float], margin: float) -> bool:
-    """Whether two xy boxes (x0, y0, x1, y1) overlap once grown by ``margin``."""
-    return a[0] - margin <= b[2] and b[0] - margin <= a[2] and a[1] - margin <= b[3] and b[1] - margin <= a[3]
 
 
 def extract_buildings(points: PointCloud, trajectory: Trajectory, footprints: Footprints, params: FacadeParams,
