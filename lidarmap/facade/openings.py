@@ -489,8 +489,9 @@ def hidden_foot_door(values: np.ndarray, rect: tuple[int, int, int, int], bounds
     ``hidden_foot_max`` above the ground line, no wider than ``open_door_max_width``, with its cells down to the
     ground line hidden as :func:`door_below_hidden` asks (mostly not observed, no row of mostly observed wall,
     door-sized if it reached the ground). What hides the lowest half metre of a wall (a car's bonnet, bins,
-    bicycles) leaves a door's upper 1.7 m; a window that low on its sill and door-tall is rarer (issue 18 round
-    37, independent dev seeds 2 and 5: doors seen from 0.4 m above their threshold were stored as windows)."""
+    bicycles) leaves a door's upper 1.7 m; that a door-tall window sits that low on its sill is taken as the less
+    likely case, a prior not measured on real streets (issue 18 round 37, independent dev seeds 2 and 5: doors
+    seen from 0.4 m above their threshold were stored as windows)."""
     op = params.openings
     if bounds[2] - ground > op.hidden_foot_max or bounds[1] - bounds[0] > op.open_door_max_width:
         return False
