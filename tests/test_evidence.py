@@ -1452,6 +1452,60 @@ def test_ground_line_beyond_a_van_that_hides_the_pavement_comes_from_the_street_
     assert np.all(_ground_line(camp, frame, 0.0, 10.0, 0.5, cols, cell, params.updated(ground_far_band=4.4)) == 0.5)
 
 
+def test_ground_line_without_a_measured_street_lies_a_sensor_height_below_the_trajectory():
+    """Independent dev seed 31, campaign 1 (issue 18 round 39): parked cars stopped a scanner's lowest beams, so it
+    measured no street in front of a wall and no wall below 1.1-1.7 m; the wall's lowest return was taken for the
+    ground line, a door's upper part became a window on the street and a shop window cut there a door. With no
+    ground point, the street lies ``track_sensor_height`` below the trajectory (here rising 2 % along the wall)
+    where it passed in front of the wall and that is more than ``track_ground_margin`` below the wall's lowest
+    return, else the grid's bottom stays."""
+    from lidarmap.core import Trajectory
+    from lidarmap.facade.campaign import campaign_data
+    from lidarmap.facade.model import FacadeFrame
+    from lidarmap.facade.observe import _ground_line
+
+    rng = np.random.default_rng(5)
+    wall = np.column_stack([rng.uniform(0.0, 10.0, 500), np.zeros(500), rng.uniform(1.4, 8.0, 500)])
+    x = np.linspace(-5.0, 15.0, 21)
+    traj = Trajectory(time=np.linspace(0.0, 1.0, 21), xyz=np.column_stack([x, np.full(21, -9.0), 2.0 + 0.02 * x]))
+    params = FacadeParams()
+    camp = campaign_data(wall, np.zeros(len(wall)), np.zeros(len(wall), dtype=bool), np.ones(len(wall), dtype=bool),
+                         traj, (0.0, 0.0, 0.0), traj.xyz, wall.min(axis=0), params)
+    frame = FacadeFrame(origin=np.zeros(3), u=np.array([1.0, 0.0, 0.0]))
+    cols, cell = 100, 0.1
+    s_mid = (np.arange(cols) + 0.5) * cell
+    line = _ground_line(camp, frame, 0.0, 10.0, 1.4, cols, cell, params)
+    np.testing.assert_allclose(line, 0.0 + 0.02 * s_mid, atol=1e-6)  # 2.0 m below the sensor's path
+    seen_low = _ground_line(camp, frame, 0.0, 10.0, 0.3, cols, cell, params)  # the wall seen down to 0.3 m
+    np.testing.assert_array_equal(seen_low, np.full(cols, 0.3))
+    off = _ground_line(camp, frame, 0.0, 10.0, 1.4, cols, cell, params.updated(track_sensor_height=0.0))
+    np.testing.assert_array_equal(off, np.full(cols, 1.4))
+    # a gable: the sensor drove past its end, never in front of it (the street there may lie lower)
+    gable = FacadeFrame(origin=np.array([20.0, 0.0, 0.0]), u=np.array([1.0, 0.0, 0.0]))
+    np.testing.assert_array_equal(_ground_line(camp, gable, 0.0, 10.0, 1.4, cols, cell, params), np.full(cols, 1.4))
+
+
+def test_a_leaf_seen_above_a_hidden_band_taller_than_a_door_from_the_ground_is_a_window():
+    """Independent dev seed 31, campaign 1 (issue 18 round 39): a shop window 3.5 m wide whose lit room returned
+    the pulses like a leaf, seen from 1.05 m above the ground line (nothing observed below), measured 2.6 m: a
+    leaf within ``door_leaf_tol`` of the ground, a door. Its foot is hidden, so it reaches lower, and its top lies
+    3.6 m above the ground line, above ``door_max_height``: a window (here 3 m wide). A garage door's top, 2.8 m
+    up, is a door; with the band below seen as wall the leaf is typed as before."""
+    from lidarmap.facade.openings import HOLE, OBJECT, OCCLUDED, detect_openings
+
+    def kinds(top_row, band=OCCLUDED):
+        values = np.full((60, 60), OBJECT, dtype=np.int8)
+        values[0:10, :] = band  # the field of view ended 1.0 m up along the whole wall
+        values[10:top_row, 10:40] = HOLE
+        shut = np.where(values == HOLE, 1.0, np.nan)
+        ops = detect_openings(values, 0.1, FacadeParams(), ground_t=np.zeros(60), opaque=shut)
+        return [op.kind for op in ops if op.n_cells > 20]
+
+    assert kinds(36) == [ElementKind.WINDOW]  # top 3.6 m above the ground line
+    assert kinds(28) == [ElementKind.DOOR]  # top 2.8 m: a garage door whose foot was hidden
+    assert kinds(36, band=OBJECT) == [ElementKind.DOOR]  # wall below it: the leaf's verdict as before
+
+
 def test_ground_line_ignores_ground_labelled_points_on_a_vans_roof():
     """Independent dev seed 8 (issue 18 round 34): a van 1.45 m tall parked in front of a double door hid the street
     there, and the ground filter labelled 12-17 of its roof's returns per metre ground: enough for a bin of the
@@ -1774,6 +1828,30 @@ def test_wall_tilt_follows_a_leaning_wall_and_ignores_glass_behind_it():
     rough = rel + rng.normal(0, 0.02, n)
     k = params.evidence.pass_noise_k
     assert effective_pass_depth(rough, params) == pytest.approx(k * np.hypot(0.008, 0.02), rel=0.15)
+
+
+def test_wall_tilt_weighs_the_walls_area_not_its_sampling():
+    """Independent dev seed 34 (issue 18 round 39): the lower 2.5 m of a façade, nearest the scanner, held more
+    returns than the storeys above, and a flush double door 2.8 cm back there tipped the robust plane 1.7 cm back at
+    the wall's foot: the leaf measured 1 cm and voted wall. Weighed by area (``wall_area_cell``) the plane stays
+    within 6 mm of the wall at its foot; weighing every return alike it tips 1.5 cm."""
+    from lidarmap.facade.evidence import local_wall_depth, wall_tilt
+
+    rng = np.random.default_rng(8)
+    s_up, t_up = rng.uniform(0, 6, 3000), rng.uniform(2.5, 14, 3000)  # the storeys: 45 returns per m²
+    s_lo, t_lo = rng.uniform(0, 6, 30000), rng.uniform(0, 2.5, 30000)  # the ground floor: 2000 per m²
+    s, t = np.r_[s_up, s_lo], np.r_[t_up, t_lo]
+    d = rng.normal(0, 0.007, len(s))
+    leaf = (s > 1.0) & (s < 2.8) & (t < 2.3)
+    d[leaf] -= 0.028
+    sdt = np.column_stack([s, t, d])
+    params = FacadeParams()
+    wall = ~leaf & (t < 2.3)  # the wall beside the door
+    assert np.abs(wall_tilt(sdt, params)[t < 2.5]).max() < 0.006
+    rel = d - local_wall_depth(sdt, 0.0, params)
+    assert np.mean(rel[leaf]) - np.mean(rel[wall]) < -0.022
+    per_return = params.updated(wall_area_cell=0.0)
+    assert np.abs(wall_tilt(sdt, per_return)[t < 0.5]).max() > 0.012  # the plane tipped towards the leaf
 
 
 def _planter_scene(seed: int = 0):

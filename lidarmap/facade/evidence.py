@@ -93,24 +93,41 @@ def wall_tilt(sdt: np.ndarray, params: FacadeParams, iterations: int = 6) -> np.
     Walls lean: a terraced house 0.3° out of plumb is 8 cm deeper at its eave than at its foot (independent dev
     seed 5: the whole top storey read as glass behind the wall and became one unknown region). Glass, curtains and
     proud pilasters a few cm off the wall get no weight once the scale is the wall's own; the slopes are bounded by
-    ``wall_max_tilt`` so that a façade mostly of glass cannot tip the plane into it."""
+    ``wall_max_tilt`` so that a façade mostly of glass cannot tip the plane into it. Each point weighs one over
+    the returns in its ``wall_area_cell`` square: the wall's area, not its sampling, sets the plane (the lower 2.5 m,
+    nearest the scanner, hold more returns than the storeys above, and a flush double door 2.8 cm back there tipped
+    the plane 1.7 cm back at the foot: the leaf measured 1 cm and voted wall; issue 18 round 39, independent dev
+    seed 34)."""
     near = np.abs(sdt[:, 2]) <= params.evidence.wall_band
     if near.sum() < 50:
         return np.zeros(len(sdt))
     s, t, d = sdt[near, 0], sdt[near, 1], sdt[near, 2]
     design = np.column_stack([np.ones_like(s), s - s.mean(), t - t.mean()])
     coef = np.array([np.median(d), 0.0, 0.0])
+    area = _area_weights(sdt[near, :2], params.evidence.wall_area_cell)
     for _ in range(iterations):
         resid = d - design @ coef
         scale = max(1.4826 * float(np.median(np.abs(resid - np.median(resid)))), 0.005)
         u = resid / (_TUKEY * scale)
-        w = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
-        if w.sum() < 20:
+        tukey = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+        if tukey.sum() < 20:
             break
+        w = tukey * area
         sw = np.sqrt(w)
         coef = np.linalg.lstsq(design * sw[:, None], d * sw, rcond=None)[0]
         coef[1:] = np.clip(coef[1:], -params.evidence.wall_max_tilt, params.evidence.wall_max_tilt)
     return coef[0] + coef[1] * (sdt[:, 0] - s.mean()) + coef[2] * (sdt[:, 1] - t.mean())
+
+
+def _area_weights(st: np.ndarray, cell: float) -> np.ndarray:
+    """Per point (s, t), the mean number of points per occupied ``cell`` x ``cell`` square over the number in its
+    own (all ones when ``cell`` is 0): each square of wall weighs the same, however densely it was sampled."""
+    if cell <= 0 or len(st) == 0:
+        return np.ones(len(st))
+    ij = np.floor((st - st.min(axis=0)) / cell).astype(np.int64)
+    _, inverse, count = np.unique(ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1], return_inverse=True,
+                                  return_counts=True)
+    return float(np.mean(count)) / count[inverse.reshape(-1)]
 
 
 def effective_pass_depth(rel: np.ndarray, params: FacadeParams) -> float:

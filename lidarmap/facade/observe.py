@@ -903,17 +903,42 @@ def _ground_line(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, t
     street: 4 m past the last bin a constant height put a door's foot 0.37 m above it, a window; dev seed 134).
     Where no bin holds that many, the same from the ground points up to ``ground_far_band`` in front, raised by
     ``ground_far_curb`` (a van parked at the curb hid the pavement: the road beyond it lies a curb lower); the
-    grid's bottom ``t0`` where none does either."""
-    if camp.ground_index is None:
-        return np.full(cols, t0)
+    grid's bottom ``t0`` where none does either, unless the trajectory puts the street well below it
+    (:func:`_ground_below_track`)."""
     op = params.openings
     bands = [(op.ground_band, 0.0)] + ([(op.ground_far_band, op.ground_far_curb)]
                                        if op.ground_far_band > op.ground_band else [])
-    for band, rise in bands:
+    for band, rise in bands if camp.ground_index is not None else []:
         line = _ground_line_within(camp, frame, s0, s1, cols, cell, band, params)
         if line is not None:
             return line + rise
-    return np.full(cols, t0)
+    return _ground_below_track(camp, frame, s0, cols, t0, cell, params)
+
+
+def _ground_below_track(camp: CampaignData, frame: FacadeFrame, s0: float, cols: int, t0: float, cell: float,
+                        params: FacadeParams) -> np.ndarray:
+    """Where a campaign measured no street in front of a wall: ``track_sensor_height`` below the trajectory (the
+    sensor's path where it passed in front of the wall, up to ``track_ground_band`` out), per grid column, where
+    that lies more than ``track_ground_margin`` below the
+    grid's bottom ``t0`` (the wall's lowest return), else ``t0``. A scanner whose lowest beams parked cars stopped
+    saw no street and no wall below 1.1-1.7 m: with the grid's bottom taken for the ground line, the upper part of
+    a door became a window on the street and a shop window cut there a door (issue 18 round 39, independent dev
+    seed 31, campaign 1). The height is a prior (a vehicle's roof), used only far below the lowest return: a
+    higher sensor puts the estimate higher, so it errs towards the wall's bottom."""
+    op = params.openings
+    flat = np.full(cols, t0)
+    if op.track_sensor_height <= 0 or camp.track is None or len(camp.track) < 2:
+        return flat
+    sdt = frame.to_facade(camp.track)
+    # the sensor passed in front of the wall: along a side wall the street it drove lies elsewhere (a street
+    # sloping away from a gable put the estimate 0.7 m below its foot: a false strip window, dev seed 2)
+    near = (sdt[:, 2] > 0) & (sdt[:, 2] < op.track_ground_band) & (sdt[:, 0] >= s0) & (sdt[:, 0] <= s0 + cols * cell)
+    if np.count_nonzero(near) < 2:
+        return flat
+    order = np.argsort(sdt[near, 0], kind="stable")
+    s_mid = s0 + (np.arange(cols) + 0.5) * cell
+    street = np.interp(s_mid, sdt[near, 0][order], sdt[near, 1][order]) - op.track_sensor_height
+    return np.where(street < t0 - op.track_ground_margin, street, flat)
 
 
 def _ground_line_within(camp: CampaignData, frame: FacadeFrame, s0: float, s1: float, cols: int, cell: float,

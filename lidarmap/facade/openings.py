@@ -338,7 +338,10 @@ def detect_openings(values: np.ndarray, cell: float, params: "FacadeParams",
         ground_here = float(np.mean(ground[rect[2]:rect[3]]))
         width_cut = side_hidden(work, rect, params)
         kind, undecided = door_or_window_verdict(bounds, ground_here, mask, opaque, params, width_cut=width_cut)
-        if cut is not None:  # wall closes it below: no door, whatever the ground line of a wall seen this little
+        if cut is not None or (kind is ElementKind.DOOR and low is None
+                               and lifted_leaf_too_tall(rect, bounds, ground_here, work, t0, cell, params)):
+            # wall closes it below: no door, whatever the ground line of a wall seen this little; or its foot is
+            # hidden and it would be taller than a door
             kind, undecided = ElementKind.WINDOW, False
         elif kind is ElementKind.WINDOW and low is None and (
                 hidden_leaf_door(work, rect, bounds, ground_here, t0, cell, mask, opaque, params, width_cut)
@@ -511,10 +514,31 @@ def _hidden_to_ground(values: np.ndarray, rect: tuple[int, int, int, int], bound
     width, top = bounds[1] - bounds[0], bounds[3] - ground
     if top > op.door_max_height or not op.door_sized(max(width, op.door_min_width) if width_cut else width, top):
         return False
+    return _band_hidden(values, rect, g_row)
+
+
+def _band_hidden(values: np.ndarray, rect: tuple[int, int, int, int], g_row: int) -> bool:
+    """Whether the cells from row ``g_row`` (the ground line's) up to a rectangle's bottom (r0, r1, c0, c1) are
+    mostly not observed, with no row of mostly observed wall among them."""
+    r0, _, c0, c1 = rect
     band = values[g_row:r0, c0:c1]
     if band.size == 0 or bool(((band == OBJECT).mean(axis=1) > 0.5).any()):
         return False  # wall seen below it: a sill, whatever hid the rest
     return float(np.mean(band == OCCLUDED)) > 0.5
+
+
+def lifted_leaf_too_tall(rect: tuple[int, int, int, int], bounds: tuple[float, float, float, float], ground: float,
+                         values: np.ndarray, t0: float, cell: float, params: FacadeParams) -> bool:
+    """Whether a door typed by its leaf above ``door_bottom_tol`` of the ground line (``ground``) would be taller
+    than a door if it reached the ground: its top more than ``door_max_height`` above it and its cells down to the
+    ground line hidden (:func:`_band_hidden`: its foot is not seen, so it reaches below its seen bottom). A shop
+    window whose room returned the pulses like a leaf, seen above a field of view that ended 1.05 m up, measured
+    2.6 m from there: a door (issue 18 round 39, independent dev seed 31)."""
+    op = params.openings
+    if bounds[2] <= ground + op.door_bottom_tol or bounds[3] - ground <= op.door_max_height:
+        return False
+    g_row = _ground_row(ground, t0, cell)
+    return rect[0] - g_row >= 2 and _band_hidden(values, rect, g_row)
 
 
 def _ground_row(ground: float, t0: float, cell: float) -> int:

@@ -368,6 +368,12 @@ class OpeningParams:
         for the ground line, 0.5 m above a door's threshold, issue 18 round 37, dev seed 2; without the curb a
         pavement 0.4 m above the road made two doors windows, hard dev seed 13); ground_far_band at most
         ground_band turns this off ...
+    track_sensor_height (2.0), track_ground_margin (0.5), track_ground_band (30.0): where a campaign measured no
+        street up to ground_far_band in front of a wall, the ground line lies track_sensor_height below the
+        trajectory where it passed in front of the wall (within its extent, up to track_ground_band out; along a
+        side wall the street lies elsewhere), when that is more than
+        track_ground_margin below the wall's lowest return (:func:`lidarmap.facade.observe._ground_below_track`;
+        a prior: mobile mapping sensors ride 1.8-3.4 m above the road; issue 18 round 39); 0 turns this off ...
     ground_below_grid (0.15): ... and never lies more than this below the façade grid's bottom (a new façade's grid
         starts at its ground line: a later campaign's ground points far below it are a light well or a lower
         terrace, not the street in front of its doors; a large value turns this off) ...
@@ -475,6 +481,9 @@ class OpeningParams:
         "ground_share_band": "> 0",
         "ground_max_slope": ">= 0",
         "ground_below_grid": ">= 0",
+        "track_sensor_height": ">= 0",
+        "track_ground_margin": ">= 0",
+        "track_ground_band": "> 0",
         "landing_min_rise": ">= 0",
         "landing_max_rise": ">= 0",
         "landing_min_depth": ">= 0",
@@ -535,6 +544,9 @@ class OpeningParams:
     ground_min_share: float = 0.5
     ground_share_band: float = 0.1
     ground_max_slope: float = 0.1
+    track_sensor_height: float = 2.0
+    track_ground_margin: float = 0.5
+    track_ground_band: float = 30.0
     ground_below_grid: float = 0.15
     landings: bool = True
     landing_min_rise: float = 0.1
@@ -602,6 +614,10 @@ class EvidenceParams:
     wall_tilt (True): ... measured from the wall's robust tilted plane (depth = a + b s + c t, Tukey-weighted fit of
         the points within wall_band; :func:`lidarmap.facade.evidence.wall_tilt`): a wall 0.3° out of plumb is 8 cm
         deeper at a 16 m eave than at its foot, and a block of s cannot follow a depth that changes with height ...
+    wall_area_cell (0.2): ... each return weighing one over the returns in its square of this size (m) of the
+        wall, so that the wall's area, not its sampling density, sets the plane (issue 18 round 39, independent dev
+        seed 34: the lower 2.5 m nearest the scanner held most returns and a flush double door there tipped the
+        plane 1.7 cm back at the foot); 0 weighs every return alike ...
     wall_max_tilt (0.02): ... whose slopes along s and t are at most this (m per m, 1.1°): a façade mostly of glass
         cannot tip the plane into the glass.
     wall_mode_bin (0.005): ... and there, per block (per scanner head with two crossed heads), the wall is the peak
@@ -671,6 +687,7 @@ class EvidenceParams:
         "wall_block": "> 0",
         "wall_max_tilt": ">= 0",
         "wall_mode_bin": "> 0",
+        "wall_area_cell": ">= 0",
         "wall_neighbour_blocks": ">= 0",
         "wall_neighbour_tol": ">= 0",
         "max_missed_pulses": ">= 0",
@@ -699,6 +716,7 @@ class EvidenceParams:
     wall_tilt: bool = True
     wall_max_tilt: float = 0.02
     wall_mode_bin: float = 0.005
+    wall_area_cell: float = 0.2
     wall_neighbour_blocks: int = 2
     wall_neighbour_tol: float = 0.01
     max_missed_pulses: int = 150
