@@ -919,8 +919,8 @@ def _ground_below_track(camp: CampaignData, frame: FacadeFrame, s0: float, cols:
                         params: FacadeParams) -> np.ndarray:
     """Where a campaign measured no street in front of a wall: ``track_sensor_height`` below the trajectory (the
     sensor's path where it passed in front of the wall, up to ``track_ground_band`` out), per grid column, where
-    that lies more than ``track_ground_margin`` below the
-    grid's bottom ``t0`` (the wall's lowest return), else ``t0``. A scanner whose lowest beams parked cars stopped
+    that lies more than ``track_ground_margin`` below the grid's bottom ``t0`` (the wall's lowest return), else
+    ``t0``. A scanner whose lowest beams parked cars stopped
     saw no street and no wall below 1.1-1.7 m: with the grid's bottom taken for the ground line, the upper part of
     a door became a window on the street and a shop window cut there a door (issue 18 round 39, independent dev
     seed 31, campaign 1). The height is a prior (a vehicle's roof), used only far below the lowest return: a

@@ -371,9 +371,9 @@ class OpeningParams:
     track_sensor_height (2.0), track_ground_margin (0.5), track_ground_band (30.0): where a campaign measured no
         street up to ground_far_band in front of a wall, the ground line lies track_sensor_height below the
         trajectory where it passed in front of the wall (within its extent, up to track_ground_band out; along a
-        side wall the street lies elsewhere), when that is more than
-        track_ground_margin below the wall's lowest return (:func:`lidarmap.facade.observe._ground_below_track`;
-        a prior: mobile mapping sensors ride 1.8-3.4 m above the road; issue 18 round 39); 0 turns this off ...
+        side wall the street lies elsewhere), when that is more than track_ground_margin below the wall's lowest
+        return (:func:`lidarmap.facade.observe._ground_below_track`; a prior, not measured on real streets: our two
+        simulators put the sensor 1.8-3.4 m above the road; issue 18 round 39); 0 turns this off ...
     ground_below_grid (0.15): ... and never lies more than this below the façade grid's bottom (a new façade's grid
         starts at its ground line: a later campaign's ground points far below it are a light well or a lower
         terrace, not the street in front of its doors; a large value turns this off) ...
